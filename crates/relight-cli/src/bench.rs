@@ -1,0 +1,150 @@
+//! `relight bench`: per-stage update timings over a fixed light orbit, and
+//! `relight bench-rays`: BVH throughput.
+
+use anyhow::Result;
+use glam::{Quat, Vec3};
+use relight_scene::Light;
+use relight_technique::{Frame, Progress, SceneContext, Technique};
+use serde::Serialize;
+use std::fmt;
+use std::path::Path;
+
+/// Frames run before timing so caches and thread pools are warm.
+const WARM_UP_FRAMES: u32 = 3;
+
+#[derive(Serialize)]
+pub struct StageReport {
+    pub stage: String,
+    pub median_ms: f64,
+    pub p95_ms: f64,
+}
+
+#[derive(Serialize)]
+pub struct BenchReport {
+    pub technique: String,
+    pub scene: String,
+    pub frames: u32,
+    pub threads: usize,
+    pub receivers: usize,
+    pub stages: Vec<StageReport>,
+    pub total: StageReport,
+    pub memory: Vec<(String, usize)>,
+    pub memory_total_bytes: usize,
+}
+
+/// The lights of frame `index` of `frames`: point and spot lights circle the
+/// vertical axis through the scene centre once over the run, directional
+/// lights turn their azimuth likewise.
+pub fn orbit(lights: &[Light], centre: Vec3, index: u32, frames: u32) -> Vec<Light> {
+    let angle = std::f32::consts::TAU * index as f32 / frames.max(1) as f32;
+    let rotation = Quat::from_rotation_y(angle);
+    let around = |position: Vec3| centre + rotation * (position - centre);
+    lights
+        .iter()
+        .map(|light| match light.clone() {
+            Light::Point { position, intensity } => Light::Point { position: around(position), intensity },
+            Light::Spot { position, direction, intensity, inner_angle, outer_angle } => Light::Spot {
+                position: around(position),
+                direction: rotation * direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            },
+            Light::Directional { direction, irradiance } => Light::Directional { direction: rotation * direction, irradiance },
+        })
+        .collect()
+}
+
+fn percentile(sorted: &[f64], fraction: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let position = ((sorted.len() - 1) as f64 * fraction).round() as usize;
+    sorted[position]
+}
+
+fn stage_report(stage: &str, mut samples: Vec<f64>) -> StageReport {
+    samples.sort_by(|a, b| a.total_cmp(b));
+    StageReport { stage: stage.to_string(), median_ms: percentile(&samples, 0.5), p95_ms: percentile(&samples, 0.95) }
+}
+
+pub fn run(context: &SceneContext, technique: &mut dyn Technique, frames: u32, progress: &dyn Progress) -> Result<BenchReport> {
+    let frames = frames.max(1);
+    let (lo, hi) = context.scene.mesh.bounds();
+    let centre = (lo + hi) * 0.5;
+    let base = &context.scene.lights;
+    let mut stage_names: Vec<&'static str> = Vec::new();
+    let mut stage_samples: Vec<Vec<f64>> = Vec::new();
+    let mut totals = Vec::with_capacity(frames as usize);
+    progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
+    for index in 0..frames + WARM_UP_FRAMES {
+        let lights = orbit(base, centre, index, frames);
+        technique.update(&Frame { lights: &lights, index: index as u64 })?;
+        progress.advance(1);
+        if index < WARM_UP_FRAMES {
+            continue;
+        }
+        let timings = technique.timings();
+        for (stage, duration) in &timings.stages {
+            let slot = match stage_names.iter().position(|name| name == stage) {
+                Some(slot) => slot,
+                None => {
+                    stage_names.push(stage);
+                    stage_samples.push(Vec::new());
+                    stage_names.len() - 1
+                }
+            };
+            stage_samples[slot].push(duration.as_secs_f64() * 1e3);
+        }
+        totals.push(timings.total().as_secs_f64() * 1e3);
+    }
+    progress.finish();
+    let memory: Vec<(String, usize)> = technique.memory().into_iter().map(|entry| (entry.buffer, entry.bytes)).collect();
+    Ok(BenchReport {
+        technique: technique.name().to_string(),
+        scene: context.scene.source.display().to_string(),
+        frames,
+        threads: rayon::current_num_threads(),
+        receivers: context.atlas.receivers.len(),
+        stages: stage_names.iter().zip(stage_samples).map(|(name, samples)| stage_report(name, samples)).collect(),
+        total: stage_report("total", totals),
+        memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
+        memory,
+    })
+}
+
+impl fmt::Display for BenchReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "{} on {}: {} frames, {} threads, {} receivers", self.technique, self.scene, self.frames, self.threads, self.receivers)?;
+        writeln!(f, "{:<28} {:>12} {:>12}", "stage", "median ms", "p95 ms")?;
+        for stage in self.stages.iter().chain(std::iter::once(&self.total)) {
+            writeln!(f, "{:<28} {:>12.3} {:>12.3}", stage.stage, stage.median_ms, stage.p95_ms)?;
+        }
+        writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;
+        for (buffer, bytes) in &self.memory {
+            writeln!(f, "{buffer:<28} {bytes:>12}")?;
+        }
+        write!(f, "{:<28} {:>12}", "memory total", self.memory_total_bytes)
+    }
+}
+
+pub fn rays(scene_path: &Path, rays: usize, repeats: usize, quiet: bool) -> Result<()> {
+    if !quiet {
+        eprintln!("loading {}", scene_path.display());
+    }
+    let scene = relight_scene::load_scene(scene_path)?;
+    // Shadow rays go toward the first point light, or above the scene centre.
+    let (lo, hi) = scene.mesh.bounds();
+    let light_position = scene
+        .lights
+        .iter()
+        .find_map(|light| match light {
+            Light::Point { position, .. } | Light::Spot { position, .. } => Some(*position),
+            Light::Directional { .. } => None,
+        })
+        .unwrap_or(Vec3::new((lo.x + hi.x) * 0.5, lo.y + (hi.y - lo.y) * 0.9, (lo.z + hi.z) * 0.5));
+    let report = relight_trace::raybench::run(&scene.mesh.positions, &scene.mesh.triangles, light_position, rays, repeats, 1);
+    println!("{} triangles, {} threads", scene.mesh.triangles.len(), rayon::current_num_threads());
+    println!("{report}");
+    Ok(())
+}

@@ -1,0 +1,370 @@
+//! The `relight` command-line tool: inspect scenes, render them with a GI
+//! technique or the path tracer, bake, benchmark and compare techniques.
+//!
+//! Data flow per command: scene file -> [`SceneContext`] (BVH, atlas) ->
+//! technique (bake, create, update from the lights) -> images and numbers.
+//! Errors are reported through `anyhow` with the file or parameter at fault.
+
+mod bench;
+mod compare;
+mod progress;
+mod techniques;
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use progress::Bars;
+use relight_scene::atlas::TexelDensity;
+use relight_technique::{ContextSettings, Frame, SceneContext};
+use relight_trace::direct::DirectSettings;
+use relight_trace::path::PathSettings;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Parser)]
+#[command(name = "relight", version, about = "Real-time global illumination of static scenes under dynamic lights")]
+struct Cli {
+    /// No progress bars.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// Options that shape the shared scene data.
+#[derive(clap::Args, Clone)]
+struct SceneOptions {
+    /// Lightmap atlas size (texels on the longer side) when no density is given.
+    #[arg(long, default_value_t = 128)]
+    lightmap_resolution: u32,
+    /// Lightmap texel size in metres (overrides --lightmap-resolution).
+    #[arg(long)]
+    texel_size: Option<f32>,
+    /// Shadow rays per point toward emissive triangles.
+    #[arg(long, default_value_t = 16)]
+    area_samples: u32,
+}
+
+/// Options that pick and configure a technique.
+#[derive(clap::Args, Clone)]
+struct TechniqueOptions {
+    /// Technique name (see `relight techniques`).
+    #[arg(long, short)]
+    technique: String,
+    /// Bake file from `relight bake` (for techniques that need one).
+    #[arg(long)]
+    bake: Option<PathBuf>,
+    /// Technique parameter, repeatable: --set key=value.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print scene statistics: triangles, materials, lights, bounds, atlas.
+    Info {
+        scene: PathBuf,
+        #[command(flatten)]
+        options: SceneOptions,
+    },
+    /// List the available techniques.
+    Techniques,
+    /// Render the camera view to EXR (linear) or PNG (tone-mapped sRGB).
+    Render {
+        scene: PathBuf,
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        /// Samples per pixel (path tracer) or primary rays per pixel (techniques).
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        /// Indirect bounces for the path tracer: 0 = direct light only.
+        #[arg(long, default_value_t = 64)]
+        max_bounces: u32,
+        /// Write only light that bounced at least once.
+        #[arg(long)]
+        indirect_only: bool,
+        /// PNG exposure multiplier (default: automatic).
+        #[arg(long)]
+        exposure: Option<f32>,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Precompute a technique's bake file.
+    Bake {
+        scene: PathBuf,
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Move the lights along a fixed orbit and time each update stage.
+    Bench {
+        scene: PathBuf,
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        #[arg(long, default_value_t = 100)]
+        frames: u32,
+        /// Also write the report as JSON.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Measure ray throughput of the BVH on a scene.
+    BenchRays {
+        scene: PathBuf,
+        #[arg(long, default_value_t = 1_000_000)]
+        rays: usize,
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+    /// Render techniques and the reference; write images, errors and a table.
+    Compare {
+        scene: PathBuf,
+        /// Comma-separated technique names.
+        #[arg(long, value_delimiter = ',', default_value = "direct")]
+        techniques: Vec<String>,
+        #[command(flatten)]
+        options: SceneOptions,
+        #[command(flatten)]
+        settings: compare::CompareSettings,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Compare every technique on every shipped scene into out/.
+    Demo {
+        /// Folder holding the shipped scenes (default: ./scenes).
+        #[arg(long)]
+        scenes: Option<PathBuf>,
+        #[command(flatten)]
+        settings: compare::CompareSettings,
+        #[arg(short, long, default_value = "out")]
+        output: PathBuf,
+    },
+    /// Generate procedural scenes.
+    Gen {
+        #[command(subcommand)]
+        kind: GenKind,
+    },
+}
+
+#[derive(Subcommand)]
+enum GenKind {
+    /// A Sponza-like atrium of about N triangles.
+    Atrium {
+        #[arg(long, default_value_t = 100_000)]
+        triangles: usize,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+impl SceneOptions {
+    fn context_settings(&self) -> Result<ContextSettings> {
+        let lightmap = match self.texel_size {
+            Some(size) if !(size.is_finite() && size > 0.0) => bail!("--texel-size must be a positive number of metres, got {size}"),
+            Some(size) => TexelDensity::MetresPerTexel(size),
+            None if !(8..=16384).contains(&self.lightmap_resolution) => {
+                bail!("--lightmap-resolution must be between 8 and 16384, got {}", self.lightmap_resolution)
+            }
+            None => TexelDensity::TargetResolution(self.lightmap_resolution),
+        };
+        Ok(ContextSettings {
+            lightmap,
+            direct: DirectSettings { area_light_samples: self.area_samples, ..DirectSettings::default() },
+        })
+    }
+}
+
+impl TechniqueOptions {
+    fn pairs(&self) -> Result<Vec<(String, String)>> {
+        self.set
+            .iter()
+            .map(|pair| {
+                let (key, value) = pair.split_once('=').with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
+                Ok((key.trim().to_string(), value.trim().to_string()))
+            })
+            .collect()
+    }
+}
+
+fn load_context(path: &Path, options: &SceneOptions, quiet: bool) -> Result<Arc<SceneContext>> {
+    let spinner = (!quiet).then(|| {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_message(format!("loading {}", path.display()));
+        bar.enable_steady_tick(std::time::Duration::from_millis(120));
+        bar
+    });
+    let scene = relight_scene::load_scene(path)?;
+    for warning in &scene.warnings {
+        tracing::warn!("{warning}");
+    }
+    if let Some(bar) = &spinner {
+        bar.set_message("building BVH and lightmap atlas");
+    }
+    let context = SceneContext::new(scene, options.context_settings()?)?;
+    if let Some(bar) = spinner {
+        bar.finish_and_clear();
+    }
+    Ok(Arc::new(context))
+}
+
+/// Creates a technique, baking in memory or reading `--bake` as needed.
+fn create_technique(
+    context: &Arc<SceneContext>,
+    options: &TechniqueOptions,
+    quiet: bool,
+) -> Result<Box<dyn relight_technique::Technique>> {
+    let kind = techniques::find(&options.technique)?;
+    let pairs = options.pairs()?;
+    let bars = Bars::new(quiet);
+    let payload = match (&options.bake, kind.needs_bake()) {
+        (Some(path), true) => {
+            let (header, payload) = relight_technique::read_bake(path)?;
+            if header.technique != kind.name() {
+                bail!("{}: this bake is for technique '{}', not '{}'", path.display(), header.technique, kind.name());
+            }
+            let fingerprint = relight_technique::scene_fingerprint(&context.scene, &context.atlas);
+            if header.scene_fingerprint != fingerprint {
+                bail!("{}: this bake was made for another scene or lightmap resolution; bake again", path.display());
+            }
+            Some(payload)
+        }
+        (None, true) => {
+            tracing::info!("no --bake given: baking {} in memory", kind.name());
+            Some(kind.bake(context, &pairs, &bars)?)
+        }
+        (Some(path), false) => bail!("{}: technique '{}' needs no bake; drop --bake", path.display(), kind.name()),
+        (None, false) => None,
+    };
+    Ok(kind.create(context.clone(), payload.as_deref(), &pairs, &bars)?)
+}
+
+fn main() {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_writer(std::io::stderr)
+        .without_time()
+        .init();
+    if let Some(threads) = cli.threads {
+        if let Err(error) = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global() {
+            eprintln!("error: --threads {threads}: {error}");
+            std::process::exit(2);
+        }
+    }
+    if let Err(error) = run(cli) {
+        // A closed pipe (`relight info x | head`) is not an error.
+        if error.chain().any(|cause| cause.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)) {
+            std::process::exit(0);
+        }
+        eprintln!("error: {error:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let quiet = cli.quiet;
+    match cli.command {
+        Command::Info { scene, options } => info(&scene, &options, quiet),
+        Command::Techniques => {
+            for kind in techniques::kinds() {
+                let bake = if kind.needs_bake() { "bake" } else { "no bake" };
+                println!("{:<12} {:<8} {}", kind.name(), bake, kind.summary());
+            }
+            Ok(())
+        }
+        Command::Render { scene, technique, options, spp, max_bounces, indirect_only, exposure, seed, output } => {
+            let context = load_context(&scene, &options, quiet)?;
+            let lights = context.scene.lights.clone();
+            let bars = Bars::new(quiet);
+            let renders = if technique.technique == "reference" {
+                if technique.bake.is_some() || !technique.set.is_empty() {
+                    bail!("--technique reference takes no --bake or --set; use --spp, --max-bounces and --seed");
+                }
+                let settings = PathSettings { max_bounces, seed, ..PathSettings::default() };
+                relight_render::render::render_reference(&context, &lights, settings, spp, &bars)
+            } else {
+                let mut instance = create_technique(&context, &technique, quiet)?;
+                instance.update(&Frame { lights: &lights, index: 0 })?;
+                relight_render::render::render_with_technique(&context, &lights, instance.as_ref(), spp, seed, &bars)
+            };
+            let image = if indirect_only { &renders.indirect } else { &renders.full };
+            image.write(&output, exposure)?;
+            if !quiet {
+                eprintln!("wrote {}", output.display());
+            }
+            Ok(())
+        }
+        Command::Bake { scene, technique, options, output } => {
+            let context = load_context(&scene, &options, quiet)?;
+            let kind = techniques::find(&technique.technique)?;
+            let start = std::time::Instant::now();
+            let payload = kind.bake(&context, &technique.pairs()?, &Bars::new(quiet))?;
+            let header = relight_technique::BakeHeader {
+                technique: kind.name().to_string(),
+                payload_version: 1,
+                scene_fingerprint: relight_technique::scene_fingerprint(&context.scene, &context.atlas),
+            };
+            relight_technique::write_bake_atomic(&output, &header, &payload)?;
+            println!("baked {} in {:.2} s: {} ({} bytes)", kind.name(), start.elapsed().as_secs_f64(), output.display(), payload.len());
+            Ok(())
+        }
+        Command::Bench { scene, technique, options, frames, json } => {
+            let context = load_context(&scene, &options, quiet)?;
+            let mut instance = create_technique(&context, &technique, quiet)?;
+            let report = bench::run(&context, instance.as_mut(), frames, &Bars::new(quiet))?;
+            println!("{report}");
+            if let Some(path) = json {
+                std::fs::write(&path, serde_json::to_string_pretty(&report)?).with_context(|| format!("{}: cannot write", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::BenchRays { scene, rays, repeats } => bench::rays(&scene, rays, repeats, quiet),
+        Command::Compare { scene, techniques, options, settings, output } => {
+            let context = load_context(&scene, &options, quiet)?;
+            let table = compare::run(&context, &scene, &techniques, &settings, &output, quiet)?;
+            println!("{table}");
+            Ok(())
+        }
+        Command::Demo { scenes, settings, output } => compare::demo(scenes, &settings, &output, quiet),
+        Command::Gen { kind: GenKind::Atrium { triangles, output } } => {
+            let scene = relight_scene::generate::write_atrium(&output, triangles)?;
+            println!("wrote {}", scene.display());
+            Ok(())
+        }
+    }
+}
+
+fn info(path: &Path, options: &SceneOptions, quiet: bool) -> Result<()> {
+    let context = load_context(path, options, quiet)?;
+    let scene = &context.scene;
+    let (lo, hi) = scene.mesh.bounds();
+    let atlas = &context.atlas;
+    println!("scene           {}", path.display());
+    println!("triangles       {}", scene.mesh.triangles.len());
+    println!("vertices        {}", scene.mesh.positions.len());
+    println!("materials       {}", scene.materials.len());
+    println!("textures        {}", scene.textures.len());
+    println!("lights          {} (+ {} emissive triangles)", scene.lights.len(), context.emitters.triangles.len());
+    println!("bounds          [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
+    println!("surface area    {:.3} m^2", scene.mesh.total_area());
+    println!("atlas           {} x {} texels, {} charts{}", atlas.width, atlas.height, atlas.chart_count, if atlas.from_mesh_uvs { " (mesh UV set 2)" } else { "" });
+    println!("texel size      {:.4} m", atlas.metres_per_texel);
+    println!("receivers       {}", atlas.receivers.len());
+    println!("coverage        {:.1} %", atlas.coverage() * 100.0);
+    println!("BVH             {} nodes, {:.1} MiB, built in {:.1} ms", context.bvh.node_count(), context.bvh.memory_bytes() as f64 / 1048576.0, context.bvh_build_time.as_secs_f64() * 1e3);
+    println!("atlas build     {:.1} ms", context.atlas_build_time.as_secs_f64() * 1e3);
+    for warning in &scene.warnings {
+        println!("warning         {warning}");
+    }
+    Ok(())
+}

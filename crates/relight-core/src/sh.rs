@@ -1,0 +1,240 @@
+//! Real spherical harmonics, orthonormal over the sphere, for up to 8 bands.
+//!
+//! Index convention: coefficient `l * (l + 1) + m` for band `l` and order
+//! `-l <= m <= l` (the layout of Sloan's "Stupid SH Tricks"). Evaluation uses
+//! the associated Legendre recurrence in Cartesian form, so there is no
+//! trigonometry per call and the cost is a few FMAs per coefficient.
+
+use glam::Vec3;
+use std::f64::consts::PI;
+
+/// Largest number of bands relight stores (l = 0..=7, 64 coefficients).
+pub const MAX_BANDS: usize = 8;
+
+/// Number of coefficients for `bands` bands.
+#[inline]
+pub const fn coefficient_count(bands: usize) -> usize {
+    bands * bands
+}
+
+#[inline]
+pub const fn index(band: usize, order: isize) -> usize {
+    (band * (band + 1)) as isize as usize + order as usize
+}
+
+/// Normalisation constant K_l^m = sqrt((2l+1)/(4 pi) (l-|m|)!/(l+|m|)!).
+fn normalisation(band: usize, order_abs: usize) -> f64 {
+    let mut ratio = 1.0f64;
+    for k in (band - order_abs + 1)..=(band + order_abs) {
+        ratio /= k as f64;
+    }
+    ((2 * band + 1) as f64 / (4.0 * PI) * ratio).sqrt()
+}
+
+/// Precomputed constants so evaluation does no divisions or factorials.
+struct Tables {
+    normalisation: [[f32; MAX_BANDS]; MAX_BANDS],
+}
+
+fn tables() -> &'static Tables {
+    static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
+    TABLES.get_or_init(|| {
+        let mut normalisation_table = [[0.0f32; MAX_BANDS]; MAX_BANDS];
+        for (band, row) in normalisation_table.iter_mut().enumerate() {
+            for (order, value) in row.iter_mut().enumerate().take(band + 1) {
+                let factor = if order == 0 { 1.0 } else { 2.0f64.sqrt() };
+                *value = (factor * normalisation(band, order)) as f32;
+            }
+        }
+        Tables {
+            normalisation: normalisation_table,
+        }
+    })
+}
+
+/// Evaluates all basis functions of `bands` bands at the unit `direction`
+/// into `out[..bands*bands]`.
+pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
+    assert!((1..=MAX_BANDS).contains(&bands), "SH bands must be 1..=8, got {bands}");
+    assert!(out.len() >= coefficient_count(bands));
+    let tables = tables();
+    let (x, y, z) = (direction.x, direction.y, direction.z);
+    // Associated Legendre P_l^m(z) without the (1-z^2)^(m/2) factor; that factor
+    // is folded into cos(m phi) sin^m(theta) = Re((x + i y)^m), computed below.
+    let mut legendre = [[0.0f32; MAX_BANDS]; MAX_BANDS];
+    for m in 0..bands {
+        // P_m^m = (2m-1)!!, without the Condon-Shortley phase, so that the
+        // real basis matches the common graphics convention (Y_1^-1 = +c y).
+        let mut pmm = 1.0f32;
+        for k in 0..m {
+            pmm *= (2 * k + 1) as f32;
+        }
+        legendre[m][m] = pmm;
+        if m + 1 < bands {
+            legendre[m + 1][m] = z * (2 * m + 1) as f32 * pmm;
+        }
+        for l in (m + 2)..bands {
+            legendre[l][m] = ((2 * l - 1) as f32 * z * legendre[l - 1][m]
+                - (l + m - 1) as f32 * legendre[l - 2][m])
+                / (l - m) as f32;
+        }
+    }
+    let mut cos_m = [0.0f32; MAX_BANDS];
+    let mut sin_m = [0.0f32; MAX_BANDS];
+    cos_m[0] = 1.0;
+    for m in 1..bands {
+        cos_m[m] = x * cos_m[m - 1] - y * sin_m[m - 1];
+        sin_m[m] = x * sin_m[m - 1] + y * cos_m[m - 1];
+    }
+    for l in 0..bands {
+        let centre = l * (l + 1);
+        out[centre] = tables.normalisation[l][0] * legendre[l][0];
+        for m in 1..=l {
+            let scaled = tables.normalisation[l][m] * legendre[l][m];
+            out[centre + m] = scaled * cos_m[m];
+            out[centre - m] = scaled * sin_m[m];
+        }
+    }
+}
+
+/// Zonal coefficient A_l of the clamped cosine lobe max(cos theta, 0), scaled
+/// so that convolving radiance SH with it yields irradiance:
+/// E_lm = A_l * L_lm with A_l = sqrt(4 pi / (2l+1)) * (cosine lobe zonal coefficient).
+/// Closed form of Ramamoorthi and Hanrahan 2001: A_0 = pi, A_1 = 2pi/3, odd l>1 vanish.
+pub fn cosine_lobe_factor(band: usize) -> f32 {
+    match band {
+        0 => std::f32::consts::PI,
+        1 => 2.0 * std::f32::consts::PI / 3.0,
+        l if l % 2 == 1 => 0.0,
+        l => {
+            let l = l as f64;
+            // 2 pi (-1)^(l/2 - 1) / ((l+2)(l-1)) * l! / (2^l ((l/2)!)^2)
+            let sign = if (l as usize / 2 - 1) % 2 == 0 { 1.0 } else { -1.0 };
+            let factorial = |n: usize| (1..=n).fold(1.0f64, |acc, k| acc * k as f64);
+            let value = 2.0 * PI * sign / ((l + 2.0) * (l - 1.0)) * factorial(l as usize)
+                / (2f64.powi(l as i32) * factorial(l as usize / 2).powi(2));
+            value as f32
+        }
+    }
+}
+
+/// Projects a function on the sphere into SH by deterministic quadrature over
+/// a latitude-longitude grid (reference for tests and bakes that need exact
+/// projections of analytic functions).
+pub fn project_by_quadrature(
+    bands: usize,
+    resolution: usize,
+    function: impl Fn(Vec3) -> f32,
+) -> Vec<f32> {
+    let mut coefficients = vec![0.0f64; coefficient_count(bands)];
+    let mut basis = vec![0.0f32; coefficient_count(bands)];
+    let theta_steps = resolution;
+    let phi_steps = 2 * resolution;
+    let d_theta = PI / theta_steps as f64;
+    let d_phi = 2.0 * PI / phi_steps as f64;
+    for i in 0..theta_steps {
+        let theta = (i as f64 + 0.5) * d_theta;
+        let weight = theta.sin() * d_theta * d_phi;
+        for j in 0..phi_steps {
+            let phi = (j as f64 + 0.5) * d_phi;
+            let direction = Vec3::new(
+                (theta.sin() * phi.cos()) as f32,
+                (theta.sin() * phi.sin()) as f32,
+                theta.cos() as f32,
+            );
+            let value = function(direction) as f64;
+            evaluate(direction, bands, &mut basis);
+            for (coefficient, b) in coefficients.iter_mut().zip(&basis) {
+                *coefficient += value * *b as f64 * weight;
+            }
+        }
+    }
+    coefficients.into_iter().map(|c| c as f32).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn basis_is_orthonormal_by_quadrature() {
+        let bands = MAX_BANDS;
+        let count = coefficient_count(bands);
+        let mut gram = vec![0.0f64; count * count];
+        let resolution = 256;
+        let d_theta = PI / resolution as f64;
+        let d_phi = PI / resolution as f64;
+        let mut basis = vec![0.0f32; count];
+        for i in 0..resolution {
+            let theta = (i as f64 + 0.5) * d_theta;
+            for j in 0..2 * resolution {
+                let phi = (j as f64 + 0.5) * d_phi;
+                let direction = Vec3::new(
+                    (theta.sin() * phi.cos()) as f32,
+                    (theta.sin() * phi.sin()) as f32,
+                    theta.cos() as f32,
+                );
+                evaluate(direction, bands, &mut basis);
+                let weight = theta.sin() * d_theta * d_phi;
+                for a in 0..count {
+                    for b in 0..count {
+                        gram[a * count + b] += basis[a] as f64 * basis[b] as f64 * weight;
+                    }
+                }
+            }
+        }
+        for a in 0..count {
+            for b in 0..count {
+                let expected = if a == b { 1.0 } else { 0.0 };
+                // Midpoint quadrature on a 256x512 grid integrates degree-14
+                // polynomials to ~1e-4; f32 basis values add ~1e-6.
+                assert!(
+                    (gram[a * count + b] - expected).abs() < 2e-3,
+                    "<Y{a}, Y{b}> = {}",
+                    gram[a * count + b]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn low_bands_match_closed_forms() {
+        let direction = Vec3::new(0.48, -0.6, 0.64);
+        let mut out = [0.0f32; 9];
+        evaluate(direction, 3, &mut out);
+        let (x, y, z) = (direction.x, direction.y, direction.z);
+        let expected = [
+            0.282_095,
+            0.488_603 * y,
+            0.488_603 * z,
+            0.488_603 * x,
+            1.092_548 * x * y,
+            1.092_548 * y * z,
+            0.315_392 * (3.0 * z * z - 1.0),
+            1.092_548 * x * z,
+            0.546_274 * (x * x - y * y),
+        ];
+        for (index, (got, want)) in out.iter().zip(expected).enumerate() {
+            // Sloan's constants are printed to 6 digits.
+            assert!((got - want).abs() < 1e-5, "coefficient {index}: {got} vs {want}");
+        }
+    }
+
+    #[test]
+    fn cosine_lobe_factors_match_numerical_convolution() {
+        // Projecting max(z, 0) gives zonal coefficients c_l; the convolution
+        // factor is A_l = sqrt(4 pi / (2l+1)) c_l (Funk-Hecke).
+        let bands = MAX_BANDS;
+        let coefficients = project_by_quadrature(bands, 512, |direction| direction.z.max(0.0));
+        for band in 0..bands {
+            let zonal = coefficients[index(band, 0)] as f64;
+            let numerical = (4.0 * PI / (2 * band + 1) as f64).sqrt() * zonal;
+            let analytic = cosine_lobe_factor(band) as f64;
+            // The kink of max(z,0) limits midpoint quadrature to ~1e-4 here.
+            assert!(
+                (numerical - analytic).abs() < 5e-4,
+                "band {band}: numerical {numerical} analytic {analytic}"
+            );
+        }
+    }
+}

@@ -1,0 +1,139 @@
+//! Rendering the camera view: primary rays through the BVH, exact direct
+//! light from the shared service, indirect light from a technique or from
+//! the path tracer. Both produce the same three images (full, direct,
+//! indirect) so that comparisons are like for like.
+
+use crate::image::Image;
+use rayon::prelude::*;
+use relight_core::sampling::SampleStream;
+use relight_core::Rgb;
+use relight_scene::Light;
+use relight_technique::{Progress, SceneContext, SurfacePoint, Technique};
+use relight_trace::path::{CameraRays, PathSettings, PathTracer};
+
+/// The three images every render produces.
+#[derive(Clone, Debug)]
+pub struct Renders {
+    /// Emission seen directly + direct + indirect.
+    pub full: Image,
+    /// Emission seen directly + light reflected once at the visible surface.
+    pub direct: Image,
+    /// Light that bounced at least once before the visible surface.
+    pub indirect: Image,
+}
+
+/// Shared pixel loop: `shade(x, y, pixel_index)` returns (direct, indirect)
+/// sums for one pixel; rows run in parallel, reported to `progress`.
+fn render_pixels(
+    width: u32,
+    height: u32,
+    progress: &dyn Progress,
+    stage: &str,
+    shade: impl Fn(u32, u32, u64) -> (Rgb, Rgb) + Sync,
+) -> Renders {
+    progress.start(stage, height as u64);
+    let rows: Vec<Vec<(Rgb, Rgb)>> = (0..height)
+        .into_par_iter()
+        .map(|y| {
+            let row = (0..width).map(|x| shade(x, y, (y as u64) * width as u64 + x as u64)).collect();
+            progress.advance(1);
+            row
+        })
+        .collect();
+    progress.finish();
+    let mut renders = Renders {
+        full: Image::new(width, height),
+        direct: Image::new(width, height),
+        indirect: Image::new(width, height),
+    };
+    for (index, (direct, indirect)) in rows.into_iter().flatten().enumerate() {
+        renders.direct.pixels[index] = direct;
+        renders.indirect.pixels[index] = indirect;
+        renders.full.pixels[index] = direct + indirect;
+    }
+    renders
+}
+
+/// Path-traced reference images with `spp` jittered samples per pixel (box filter).
+pub fn render_reference(
+    context: &SceneContext,
+    lights: &[Light],
+    settings: PathSettings,
+    spp: u32,
+    progress: &dyn Progress,
+) -> Renders {
+    let direct = context.direct();
+    let tracer = PathTracer::new(&direct, settings);
+    let camera = CameraRays::new(&context.scene.camera);
+    let spp = spp.max(1);
+    render_pixels(camera.width, camera.height, progress, "path tracing", |x, y, pixel| {
+        let mut direct_sum = [0.0f64; 3];
+        let mut indirect_sum = [0.0f64; 3];
+        for sample in 0..spp {
+            let mut rng = SampleStream::new(settings.seed, pixel, sample as u64);
+            let ray = camera.ray(x, y, rng.next_vec2());
+            let split = tracer.camera_sample(lights, &ray, &mut rng, (pixel << 24) ^ sample as u64);
+            for channel in 0..3 {
+                direct_sum[channel] += split.direct[channel] as f64;
+                indirect_sum[channel] += split.indirect[channel] as f64;
+            }
+        }
+        let scale = 1.0 / spp as f64;
+        (to_rgb(direct_sum, scale), to_rgb(indirect_sum, scale))
+    })
+}
+
+fn to_rgb(sum: [f64; 3], scale: f64) -> Rgb {
+    Rgb::new((sum[0] * scale) as f32, (sum[1] * scale) as f32, (sum[2] * scale) as f32)
+}
+
+/// Images lit by `technique`'s indirect light and the shared direct light,
+/// `spp` jittered primary rays per pixel (for antialiasing and area-light
+/// sampling; the technique's answer itself is noise-free).
+pub fn render_with_technique(
+    context: &SceneContext,
+    lights: &[Light],
+    technique: &dyn Technique,
+    spp: u32,
+    seed: u64,
+    progress: &dyn Progress,
+) -> Renders {
+    let direct = context.direct();
+    let camera = CameraRays::new(&context.scene.camera);
+    let scene = &context.scene;
+    let spp = spp.max(1);
+    render_pixels(camera.width, camera.height, progress, technique.name(), |x, y, pixel| {
+        let mut direct_sum = Rgb::ZERO;
+        let mut indirect_sum = Rgb::ZERO;
+        for sample in 0..spp {
+            let mut rng = SampleStream::new(seed, pixel, sample as u64);
+            let ray = camera.ray(x, y, rng.next_vec2());
+            let Some(hit) = context.bvh.intersect(&ray) else {
+                direct_sum += scene.environment.radiance;
+                continue;
+            };
+            let triangle = hit.triangle as usize;
+            let [a, b, c] = scene.mesh.vertices(triangle);
+            let position = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+            let front = scene.mesh.geometric_normal(triangle);
+            let seen_from_front = front.dot(ray.direction) < 0.0;
+            let normal = if seen_from_front { front } else { -front };
+            let albedo = scene.albedo_at(triangle, hit.barycentric);
+            let irradiance = direct.irradiance(lights, position, normal, (pixel << 24) ^ sample as u64);
+            if seen_from_front {
+                direct_sum += scene.material_of(triangle).emission;
+            }
+            direct_sum += albedo * irradiance * std::f32::consts::FRAC_1_PI;
+            // The lightmap holds the front side; the back of thin geometry
+            // asks the technique as a point in space.
+            let indirect = if seen_from_front {
+                technique.indirect_irradiance(&SurfacePoint { position, normal, triangle: hit.triangle, barycentric: hit.barycentric })
+            } else {
+                technique.indirect_irradiance_in_space(position, normal)
+            };
+            indirect_sum += albedo * indirect * std::f32::consts::FRAC_1_PI;
+        }
+        let scale = 1.0 / spp as f32;
+        (direct_sum * scale, indirect_sum * scale)
+    })
+}

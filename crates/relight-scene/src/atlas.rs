@@ -1,0 +1,795 @@
+//! Lightmap parameterisation of the static geometry, and its receivers.
+//!
+//! Every technique stores indirect light for static geometry in one lightmap,
+//! and is measured against the path tracer on the same texels, so the atlas
+//! is shared. When the mesh carries a second UV set that is a valid,
+//! non-overlapping atlas it is used as is; otherwise charts are grown over
+//! edge-connected triangles whose normals stay within a cone of the chart's
+//! seed normal, projected onto the seed's plane (a height field, so no folds),
+//! and shelf-packed with a gutter of [`GUTTER_TEXELS`].
+//!
+//! Receivers are the texels that cover geometry. Rasterisation is
+//! conservative: a texel is covered when its square overlaps a triangle, so
+//! thin triangles still get texels; the texel's world point is the closest
+//! point of the triangle to the texel centre. Dilation copies each covered
+//! texel into the empty gutter texels around it within the same chart, so a
+//! bilinear lookup anywhere inside a chart never fetches an empty texel and
+//! never mixes in a neighbouring chart (seam-aware). The dilation is a
+//! precomputed gather list, so the per-frame cost is one copy per gutter texel.
+
+use crate::{Scene, SceneError};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use relight_core::Rgb;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Empty texels kept around every chart: one for the conservative
+/// rasterisation's spill, one for the bilinear footprint.
+pub const GUTTER_TEXELS: u32 = 2;
+
+/// Charts accept triangles whose normal is within this angle of the seed's,
+/// keeping the planar projection injective and texel stretch below 1/cos.
+const CHART_NORMAL_COS: f32 = 0.906; // 25 degrees
+
+/// How the atlas resolution is chosen.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TexelDensity {
+    /// World-space size of one texel edge, in metres.
+    MetresPerTexel(f32),
+    /// Aim for an atlas of about this many texels on its longer side.
+    TargetResolution(u32),
+}
+
+impl Default for TexelDensity {
+    fn default() -> Self {
+        TexelDensity::TargetResolution(256)
+    }
+}
+
+/// One lightmap texel that covers geometry.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Receiver {
+    pub texel: [u32; 2],
+    pub position: Vec3,
+    /// Geometric normal of `triangle` (front face, counter-clockwise).
+    pub normal: Vec3,
+    pub triangle: u32,
+    /// (b1, b2) of `position` on `triangle`.
+    pub barycentric: Vec2,
+    pub albedo: Rgb,
+}
+
+/// Receivers in struct-of-arrays form, in texel scan order.
+#[derive(Clone, Debug, Default)]
+pub struct Receivers {
+    pub texels: Vec<[u32; 2]>,
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub triangles: Vec<u32>,
+    pub barycentrics: Vec<Vec2>,
+    pub albedos: Vec<Rgb>,
+}
+
+impl Receivers {
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    pub fn get(&self, index: usize) -> Receiver {
+        Receiver {
+            texel: self.texels[index],
+            position: self.positions[index],
+            normal: self.normals[index],
+            triangle: self.triangles[index],
+            barycentric: self.barycentrics[index],
+            albedo: self.albedos[index],
+        }
+    }
+}
+
+/// The lightmap layout of a scene: per-triangle texel-space UVs, the texel
+/// grid, its receivers and the dilation gather list.
+#[derive(Clone, Debug)]
+pub struct Atlas {
+    pub width: u32,
+    pub height: u32,
+    /// Texel-space UVs of each triangle's corners (0..width, 0..height).
+    pub triangle_uvs: Vec<[Vec2; 3]>,
+    /// For each texel, its receiver index or `u32::MAX` when empty.
+    pub receiver_of_texel: Vec<u32>,
+    pub receivers: Receivers,
+    /// (empty texel, covered texel it copies), both as texel indices.
+    pub dilation: Vec<(u32, u32)>,
+    /// True when the mesh's own second UV set was used.
+    pub from_mesh_uvs: bool,
+    pub chart_count: usize,
+    /// Metres per texel edge actually used (for generated atlases).
+    pub metres_per_texel: f32,
+}
+
+const EMPTY: u32 = u32::MAX;
+
+impl Atlas {
+    /// Builds the atlas of `scene` at the requested density.
+    pub fn build(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
+        if density_is_invalid(density) {
+            return Err(SceneError::Invalid {
+                path: scene.source.clone(),
+                message: format!(
+                    "lightmap density {density:?} is not usable: metres per texel must be \
+                     positive and finite, target resolution between 8 and 16384"
+                ),
+            });
+        }
+        if let Some(atlas) = Self::from_mesh_uvs(scene, density) {
+            return Ok(atlas);
+        }
+        let charts = grow_charts(scene);
+        let total_area = scene.mesh.total_area().max(1e-12);
+        let mut metres_per_texel = match density {
+            TexelDensity::MetresPerTexel(metres) => metres,
+            // Start from perfect packing (a lower bound) and grow texels until
+            // the shelves fit the square.
+            TexelDensity::TargetResolution(resolution) => (total_area as f32 / (resolution as f32).powi(2)).sqrt(),
+        };
+        let shelf_width = match density {
+            TexelDensity::TargetResolution(resolution) => Some(resolution),
+            TexelDensity::MetresPerTexel(_) => None,
+        };
+        loop {
+            let (width, height, triangle_uvs) = pack_charts(scene, &charts, metres_per_texel, shelf_width);
+            let fits = match density {
+                TexelDensity::MetresPerTexel(_) => true,
+                TexelDensity::TargetResolution(resolution) => width.max(height) <= resolution,
+            };
+            if fits || width.max(height) <= 8 {
+                if (width as u64) * (height as u64) > 16384 * 16384 {
+                    return Err(SceneError::Invalid {
+                        path: scene.source.clone(),
+                        message: format!(
+                            "lightmap would be {width}x{height} texels at {metres_per_texel} m \
+                             per texel: raise the metres per texel or lower the resolution"
+                        ),
+                    });
+                }
+                let mut atlas = Self::rasterise(scene, width, height, triangle_uvs);
+                atlas.chart_count = charts.len();
+                atlas.metres_per_texel = metres_per_texel;
+                return Ok(atlas);
+            }
+            metres_per_texel *= 1.03;
+        }
+    }
+
+    /// Uses the mesh's second UV set when it lies in [0,1] and no two
+    /// triangles share a texel at the requested resolution.
+    fn from_mesh_uvs(scene: &Scene, density: TexelDensity) -> Option<Self> {
+        let mesh = &scene.mesh;
+        if mesh.lightmap_uvs.len() != mesh.positions.len() || mesh.triangles.is_empty() {
+            return None;
+        }
+        let resolution = match density {
+            TexelDensity::TargetResolution(resolution) => resolution,
+            TexelDensity::MetresPerTexel(metres) => {
+                ((mesh.total_area() as f32).sqrt() / metres / 0.7).ceil().clamp(8.0, 16384.0) as u32
+            }
+        };
+        let in_unit_square = mesh
+            .lightmap_uvs
+            .iter()
+            .all(|uv| uv.is_finite() && uv.min_element() >= 0.0 && uv.max_element() <= 1.0);
+        if !in_unit_square {
+            return None;
+        }
+        let scale = resolution as f32;
+        let triangle_uvs: Vec<[Vec2; 3]> = mesh
+            .triangles
+            .iter()
+            .map(|corners| corners.map(|vertex| mesh.lightmap_uvs[vertex as usize] * scale))
+            .collect();
+        // Overlap check: count texel centres claimed by more than one triangle.
+        let mut owner: HashMap<u32, u32> = HashMap::new();
+        for (triangle, uvs) in triangle_uvs.iter().enumerate() {
+            let mut overlapping = false;
+            for_each_texel_centre_inside(uvs, resolution, resolution, |texel| {
+                if let Some(previous) = owner.insert(texel, triangle as u32) {
+                    overlapping |= previous != triangle as u32;
+                }
+            });
+            if overlapping {
+                tracing::info!("the mesh's second UV set overlaps; generating a lightmap atlas");
+                return None;
+            }
+        }
+        let mut atlas = Self::rasterise(scene, resolution, resolution, triangle_uvs);
+        atlas.from_mesh_uvs = true;
+        Some(atlas)
+    }
+
+    fn rasterise(scene: &Scene, width: u32, height: u32, triangle_uvs: Vec<[Vec2; 3]>) -> Self {
+        let texel_count = width as usize * height as usize;
+        // Per texel, the best (distance-to-triangle, triangle) packed so that
+        // an atomic min picks the same winner whatever the thread order.
+        let best: Vec<AtomicU64> = (0..texel_count).map(|_| AtomicU64::new(u64::MAX)).collect();
+        triangle_uvs.par_iter().enumerate().for_each(|(triangle, uvs)| {
+            if scene.mesh.area(triangle) <= 0.0 {
+                return;
+            }
+            let lo = uvs[0].min(uvs[1]).min(uvs[2]).floor().max(Vec2::ZERO);
+            let hi = uvs[0].max(uvs[1]).max(uvs[2]).ceil();
+            let x_end = (hi.x as u32).min(width);
+            let y_end = (hi.y as u32).min(height);
+            for y in lo.y as u32..y_end {
+                for x in lo.x as u32..x_end {
+                    let texel_min = Vec2::new(x as f32, y as f32);
+                    if !triangle_overlaps_box(uvs, texel_min, texel_min + Vec2::ONE) {
+                        continue;
+                    }
+                    let centre = texel_min + Vec2::splat(0.5);
+                    let (distance, _) = closest_barycentric(uvs, centre);
+                    let key = ((distance.to_bits() as u64) << 32) | triangle as u64;
+                    best[y as usize * width as usize + x as usize].fetch_min(key, Ordering::Relaxed);
+                }
+            }
+        });
+        let mut receiver_of_texel = vec![EMPTY; texel_count];
+        let mut receivers = Receivers::default();
+        for (texel, key) in best.iter().enumerate() {
+            let key = key.load(Ordering::Relaxed);
+            if key == u64::MAX {
+                continue;
+            }
+            let triangle = (key & 0xFFFF_FFFF) as usize;
+            let x = texel as u32 % width;
+            let y = texel as u32 / width;
+            let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+            let (_, barycentric) = closest_barycentric(&triangle_uvs[triangle], centre);
+            let [a, b, c] = scene.mesh.vertices(triangle);
+            let position =
+                a * (1.0 - barycentric.x - barycentric.y) + b * barycentric.x + c * barycentric.y;
+            receiver_of_texel[texel] = receivers.len() as u32;
+            receivers.texels.push([x, y]);
+            receivers.positions.push(position);
+            receivers.normals.push(scene.mesh.geometric_normal(triangle));
+            receivers.triangles.push(triangle as u32);
+            receivers.barycentrics.push(barycentric);
+            receivers.albedos.push(scene.albedo_at(triangle, barycentric));
+        }
+        let dilation = dilation_list(width, height, &receiver_of_texel, &receivers, &triangle_uvs);
+        Self {
+            width,
+            height,
+            triangle_uvs,
+            receiver_of_texel,
+            receivers,
+            dilation,
+            from_mesh_uvs: false,
+            chart_count: 0,
+            metres_per_texel: 0.0,
+        }
+    }
+
+    /// Fraction of atlas texels that cover geometry.
+    pub fn coverage(&self) -> f64 {
+        self.receivers.len() as f64 / (self.width as f64 * self.height as f64)
+    }
+
+    /// Scatters per-receiver values into a full lightmap and dilates it.
+    pub fn to_lightmap(&self, per_receiver: &[Rgb]) -> Vec<Rgb> {
+        let mut lightmap = vec![Rgb::ZERO; self.width as usize * self.height as usize];
+        for (receiver, texel) in self.receivers.texels.iter().enumerate() {
+            lightmap[(texel[1] * self.width + texel[0]) as usize] = per_receiver[receiver];
+        }
+        self.dilate(&mut lightmap);
+        lightmap
+    }
+
+    /// Copies covered texels into the gutter texels around them.
+    pub fn dilate(&self, lightmap: &mut [Rgb]) {
+        for &(target, source) in &self.dilation {
+            lightmap[target as usize] = lightmap[source as usize];
+        }
+    }
+
+    /// Texel-space UV of a point on a triangle.
+    #[inline]
+    pub fn uv_of(&self, triangle: u32, barycentric: Vec2) -> Vec2 {
+        let [a, b, c] = self.triangle_uvs[triangle as usize];
+        a * (1.0 - barycentric.x - barycentric.y) + b * barycentric.x + c * barycentric.y
+    }
+
+    /// Bilinear lookup of a dilated lightmap at a point on a triangle.
+    pub fn sample(&self, lightmap: &[Rgb], triangle: u32, barycentric: Vec2) -> Rgb {
+        let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
+        let x0 = uv.x.floor();
+        let y0 = uv.y.floor();
+        let fx = uv.x - x0;
+        let fy = uv.y - y0;
+        let max_x = self.width as i64 - 1;
+        let max_y = self.height as i64 - 1;
+        let texel = |x: i64, y: i64| {
+            let x = x.clamp(0, max_x) as usize;
+            let y = y.clamp(0, max_y) as usize;
+            lightmap[y * self.width as usize + x]
+        };
+        let (x0, y0) = (x0 as i64, y0 as i64);
+        let top = texel(x0, y0).lerp(texel(x0 + 1, y0), fx);
+        let bottom = texel(x0, y0 + 1).lerp(texel(x0 + 1, y0 + 1), fx);
+        top.lerp(bottom, fy)
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.triangle_uvs.len() * std::mem::size_of::<[Vec2; 3]>()
+            + self.receiver_of_texel.len() * 4
+            + self.receivers.len() * (8 + 12 + 12 + 4 + 8 + 12)
+            + self.dilation.len() * 8
+    }
+}
+
+fn density_is_invalid(density: TexelDensity) -> bool {
+    match density {
+        TexelDensity::MetresPerTexel(metres) => !(metres.is_finite() && metres > 0.0),
+        TexelDensity::TargetResolution(resolution) => !(8..=16384).contains(&resolution),
+    }
+}
+
+/// A chart: triangles and the plane basis they are projected onto.
+struct Chart {
+    triangles: Vec<u32>,
+    tangent: Vec3,
+    bitangent: Vec3,
+}
+
+/// Grows charts by flood fill over shared edges, in triangle order, so the
+/// result is deterministic.
+fn grow_charts(scene: &Scene) -> Vec<Chart> {
+    let mesh = &scene.mesh;
+    let triangle_count = mesh.triangles.len();
+    // Welds vertices by position so meshes with split vertices still connect.
+    let mut welded: HashMap<[u32; 3], u32> = HashMap::new();
+    let vertex_id: Vec<u32> = mesh
+        .positions
+        .iter()
+        .map(|p| {
+            let key = [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+            let next = welded.len() as u32;
+            *welded.entry(key).or_insert(next)
+        })
+        .collect();
+    let mut edge_triangles: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+    for (triangle, corners) in mesh.triangles.iter().enumerate() {
+        for corner in 0..3 {
+            let a = vertex_id[corners[corner] as usize];
+            let b = vertex_id[corners[(corner + 1) % 3] as usize];
+            edge_triangles.entry((a.min(b), a.max(b))).or_default().push(triangle as u32);
+        }
+    }
+    let normals: Vec<Vec3> = (0..triangle_count).map(|t| mesh.geometric_normal(t)).collect();
+    let mut chart_of = vec![u32::MAX; triangle_count];
+    let mut charts = Vec::new();
+    let mut stack = Vec::new();
+    for seed in 0..triangle_count {
+        if chart_of[seed] != u32::MAX || mesh.area(seed) <= 0.0 {
+            continue;
+        }
+        let chart_index = charts.len() as u32;
+        let seed_normal = normals[seed];
+        let mut members = vec![seed as u32];
+        chart_of[seed] = chart_index;
+        stack.push(seed as u32);
+        while let Some(triangle) = stack.pop() {
+            let corners = mesh.triangles[triangle as usize];
+            for corner in 0..3 {
+                let a = vertex_id[corners[corner] as usize];
+                let b = vertex_id[corners[(corner + 1) % 3] as usize];
+                for &neighbour in &edge_triangles[&(a.min(b), a.max(b))] {
+                    let n = neighbour as usize;
+                    if chart_of[n] == u32::MAX
+                        && mesh.area(n) > 0.0
+                        && normals[n].dot(seed_normal) >= CHART_NORMAL_COS
+                    {
+                        chart_of[n] = chart_index;
+                        members.push(neighbour);
+                        stack.push(neighbour);
+                    }
+                }
+            }
+        }
+        members.sort_unstable();
+        let (tangent, bitangent) = chart_axes(scene, &members, seed_normal);
+        charts.push(Chart {
+            triangles: members,
+            tangent,
+            bitangent,
+        });
+    }
+    charts
+}
+
+/// In-plane axes along the chart edge direction whose bounding rectangle is
+/// smallest (edges of a few dozen triangles are tried), so axis-aligned walls
+/// and quads pack as tight rectangles rather than diamonds.
+fn chart_axes(scene: &Scene, members: &[u32], normal: Vec3) -> (Vec3, Vec3) {
+    let mut points: Vec<Vec3> = Vec::with_capacity(members.len() * 3);
+    for &triangle in members {
+        points.extend(scene.mesh.vertices(triangle as usize));
+    }
+    let fallback = relight_core::sampling::orthonormal_basis(normal).0;
+    let mut best = (f32::INFINITY, fallback);
+    for &triangle in members.iter().take(32) {
+        let [a, b, c] = scene.mesh.vertices(triangle as usize);
+        for edge in [b - a, c - b, a - c] {
+            let tangent = (edge - normal * edge.dot(normal)).normalize_or_zero();
+            if tangent == Vec3::ZERO {
+                continue;
+            }
+            let bitangent = normal.cross(tangent);
+            let mut lo = Vec2::splat(f32::INFINITY);
+            let mut hi = Vec2::splat(f32::NEG_INFINITY);
+            for point in &points {
+                let projected = Vec2::new(point.dot(tangent), point.dot(bitangent));
+                lo = lo.min(projected);
+                hi = hi.max(projected);
+            }
+            let extent = hi - lo;
+            let area = extent.x * extent.y;
+            // Strictly smaller wins, so the first of equal candidates stays.
+            if area < best.0 * (1.0 - 1e-5) {
+                best = (area, tangent);
+            }
+        }
+    }
+    (best.1, normal.cross(best.1))
+}
+
+/// Projects charts at `metres_per_texel` and shelf-packs them; returns the
+/// atlas size and every triangle's texel-space UVs.
+/// `shelf_width` fixes the atlas width (a target resolution); otherwise the
+/// width is chosen for a roughly square atlas.
+fn pack_charts(scene: &Scene, charts: &[Chart], metres_per_texel: f32, shelf_width: Option<u32>) -> (u32, u32, Vec<[Vec2; 3]>) {
+    let mut triangle_uvs = vec![[Vec2::ZERO; 3]; scene.mesh.triangles.len()];
+    // Project each chart into its own texel frame with origin at its minimum.
+    let mut sizes = Vec::with_capacity(charts.len());
+    for chart in charts {
+        let mut lo = Vec2::splat(f32::INFINITY);
+        let mut hi = Vec2::splat(f32::NEG_INFINITY);
+        for &triangle in &chart.triangles {
+            let vertices = scene.mesh.vertices(triangle as usize);
+            let uvs = vertices.map(|p| {
+                Vec2::new(p.dot(chart.tangent), p.dot(chart.bitangent)) / metres_per_texel
+            });
+            for uv in uvs {
+                lo = lo.min(uv);
+                hi = hi.max(uv);
+            }
+            triangle_uvs[triangle as usize] = uvs;
+        }
+        for &triangle in &chart.triangles {
+            for uv in &mut triangle_uvs[triangle as usize] {
+                *uv -= lo;
+            }
+        }
+        let extent = (hi - lo).max(Vec2::ZERO);
+        // Size in whole texels including the gutter on both sides.
+        let size = (extent.ceil() + Vec2::splat(2.0 * GUTTER_TEXELS as f32 + 1.0)).as_uvec2();
+        sizes.push(size);
+    }
+    let total_area: f64 = sizes.iter().map(|s| s.x as f64 * s.y as f64).sum();
+    let widest = sizes.iter().map(|s| s.x).max().unwrap_or(1);
+    let width = shelf_width.unwrap_or((total_area.sqrt() * 1.05).ceil() as u32).max(widest).max(8);
+    // Shelf packing, tallest first; ties broken by chart index for determinism.
+    let mut order: Vec<usize> = (0..charts.len()).collect();
+    order.sort_by(|&a, &b| sizes[b].y.cmp(&sizes[a].y).then(sizes[b].x.cmp(&sizes[a].x)).then(a.cmp(&b)));
+    let (mut cursor_x, mut shelf_y, mut shelf_height) = (0u32, 0u32, 0u32);
+    for index in order {
+        let size = sizes[index];
+        if cursor_x + size.x > width {
+            shelf_y += shelf_height;
+            cursor_x = 0;
+            shelf_height = 0;
+        }
+        let offset = Vec2::new(cursor_x as f32, shelf_y as f32) + Vec2::splat(GUTTER_TEXELS as f32 + 0.5);
+        for &triangle in &charts[index].triangles {
+            for uv in &mut triangle_uvs[triangle as usize] {
+                *uv += offset;
+            }
+        }
+        cursor_x += size.x;
+        shelf_height = shelf_height.max(size.y);
+    }
+    let height = (shelf_y + shelf_height).max(8);
+    (width, height, triangle_uvs)
+}
+
+/// For each empty texel within the gutter of a covered one, the covered
+/// texel to copy: the nearest covered texel (Chebyshev rings, then squared
+/// distance, then index) among those whose triangles' UV footprint reaches the
+/// empty texel's bilinear neighbourhood, so values never cross charts.
+fn dilation_list(
+    width: u32,
+    height: u32,
+    receiver_of_texel: &[u32],
+    receivers: &Receivers,
+    triangle_uvs: &[[Vec2; 3]],
+) -> Vec<(u32, u32)> {
+    let radius = GUTTER_TEXELS as i64;
+    let mut list = Vec::new();
+    for y in 0..height as i64 {
+        for x in 0..width as i64 {
+            let texel = (y * width as i64 + x) as usize;
+            if receiver_of_texel[texel] != EMPTY {
+                continue;
+            }
+            let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+            let mut best: Option<(f32, i64, u32)> = None;
+            for dy in -radius..=radius {
+                for dx in -radius..=radius {
+                    let (sx, sy) = (x + dx, y + dy);
+                    if sx < 0 || sy < 0 || sx >= width as i64 || sy >= height as i64 {
+                        continue;
+                    }
+                    let source = (sy * width as i64 + sx) as usize;
+                    let receiver = receiver_of_texel[source];
+                    if receiver == EMPTY {
+                        continue;
+                    }
+                    // Only texels whose triangle is close to this texel in UV
+                    // belong to the same chart as any bilinear lookup here.
+                    let uvs = &triangle_uvs[receivers.triangles[receiver as usize] as usize];
+                    let (uv_distance, _) = closest_barycentric(uvs, centre);
+                    if uv_distance > radius as f32 + 0.75 {
+                        continue;
+                    }
+                    let distance = (dx * dx + dy * dy) as f32;
+                    let candidate = (distance, source as i64, source as u32);
+                    if best.is_none_or(|b| (candidate.0, candidate.1) < (b.0, b.1)) {
+                        best = Some(candidate);
+                    }
+                }
+            }
+            if let Some((_, _, source)) = best {
+                list.push((texel as u32, source));
+            }
+        }
+    }
+    list
+}
+
+/// Calls `visit` with the index of every texel whose centre lies inside the
+/// triangle (used for the overlap test of mesh-provided UVs).
+fn for_each_texel_centre_inside(uvs: &[Vec2; 3], width: u32, height: u32, mut visit: impl FnMut(u32)) {
+    let lo = uvs[0].min(uvs[1]).min(uvs[2]).floor().max(Vec2::ZERO);
+    let hi = uvs[0].max(uvs[1]).max(uvs[2]).ceil();
+    for y in lo.y as u32..(hi.y as u32).min(height) {
+        for x in lo.x as u32..(hi.x as u32).min(width) {
+            let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+            if closest_barycentric(uvs, centre).0 == 0.0 {
+                visit(y * width + x);
+            }
+        }
+    }
+}
+
+/// Distance from `point` to the 2D triangle and the barycentric (b1, b2) of
+/// the closest point (Ericson, Real-Time Collision Detection 5.1.5).
+pub fn closest_barycentric(uvs: &[Vec2; 3], point: Vec2) -> (f32, Vec2) {
+    let [a, b, c] = *uvs;
+    let ab = b - a;
+    let ac = c - a;
+    let ap = point - a;
+    let d1 = ab.dot(ap);
+    let d2 = ac.dot(ap);
+    if d1 <= 0.0 && d2 <= 0.0 {
+        return (point.distance(a), Vec2::ZERO);
+    }
+    let bp = point - b;
+    let d3 = ab.dot(bp);
+    let d4 = ac.dot(bp);
+    if d3 >= 0.0 && d4 <= d3 {
+        return (point.distance(b), Vec2::new(1.0, 0.0));
+    }
+    let vc = d1 * d4 - d3 * d2;
+    if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
+        let v = d1 / (d1 - d3);
+        return (point.distance(a + ab * v), Vec2::new(v, 0.0));
+    }
+    let cp = point - c;
+    let d5 = ab.dot(cp);
+    let d6 = ac.dot(cp);
+    if d6 >= 0.0 && d5 <= d6 {
+        return (point.distance(c), Vec2::new(0.0, 1.0));
+    }
+    let vb = d5 * d2 - d1 * d6;
+    if vb <= 0.0 && d2 >= 0.0 && d6 <= 0.0 {
+        let w = d2 / (d2 - d6);
+        return (point.distance(a + ac * w), Vec2::new(0.0, w));
+    }
+    let va = d3 * d6 - d5 * d4;
+    if va <= 0.0 && (d4 - d3) >= 0.0 && (d5 - d6) >= 0.0 {
+        let w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        let closest = b + (c - b) * w;
+        return (point.distance(closest), Vec2::new(1.0 - w, w));
+    }
+    let denominator = va + vb + vc;
+    if denominator.abs() < 1e-30 {
+        // Degenerate in UV: fall back to the nearest corner.
+        return (point.distance(a), Vec2::ZERO);
+    }
+    let v = vb / denominator;
+    let w = vc / denominator;
+    (0.0, Vec2::new(v, w))
+}
+
+/// Separating-axis test of a 2D triangle against an axis-aligned box.
+fn triangle_overlaps_box(uvs: &[Vec2; 3], box_min: Vec2, box_max: Vec2) -> bool {
+    let lo = uvs[0].min(uvs[1]).min(uvs[2]);
+    let hi = uvs[0].max(uvs[1]).max(uvs[2]);
+    if lo.x >= box_max.x || lo.y >= box_max.y || hi.x <= box_min.x || hi.y <= box_min.y {
+        return false;
+    }
+    let corners = [
+        box_min,
+        Vec2::new(box_max.x, box_min.y),
+        box_max,
+        Vec2::new(box_min.x, box_max.y),
+    ];
+    for edge in 0..3 {
+        let start = uvs[edge];
+        let direction = uvs[(edge + 1) % 3] - start;
+        let axis = Vec2::new(-direction.y, direction.x);
+        let opposite = uvs[(edge + 2) % 3];
+        let side = axis.dot(opposite - start);
+        if side == 0.0 {
+            continue;
+        }
+        // Separated when every box corner is strictly on the far side.
+        if corners.iter().all(|corner| axis.dot(*corner - start) * side < 0.0) {
+            return false;
+        }
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Material, Mesh};
+
+    fn quad_scene(size: f32) -> Scene {
+        // Two unit quads: one in the floor plane, one standing, sharing an edge.
+        let positions = vec![
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(size, 0.0, 0.0),
+            Vec3::new(size, 0.0, size),
+            Vec3::new(0.0, 0.0, size),
+            Vec3::new(0.0, size, 0.0),
+            Vec3::new(size, size, 0.0),
+        ];
+        let triangles = vec![[0, 2, 1], [0, 3, 2], [0, 1, 5], [0, 5, 4]];
+        Scene {
+            mesh: Mesh {
+                positions,
+                triangles,
+                material_ids: vec![0; 4],
+                ..Default::default()
+            },
+            materials: vec![Material::default()],
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn two_planes_make_two_charts_with_full_coverage() {
+        let scene = quad_scene(1.0);
+        let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.05)).unwrap();
+        assert_eq!(atlas.chart_count, 2);
+        // Each 1 m quad at 5 cm per texel covers 20x20 texels; conservative
+        // rasterisation may add one ring (22x22) but never less than 20x20.
+        let per_chart = atlas.receivers.len() / 2;
+        assert!((400..=484).contains(&per_chart), "{per_chart} texels per chart");
+        for index in 0..atlas.receivers.len() {
+            let receiver = atlas.receivers.get(index);
+            let triangle_normal = scene.mesh.geometric_normal(receiver.triangle as usize);
+            assert_eq!(receiver.normal, triangle_normal);
+            // Receiver points lie on the quads (closest point clamps to them).
+            assert!(receiver.position.min_element() >= -1e-5 && receiver.position.max_element() <= 1.0 + 1e-5);
+        }
+    }
+
+    #[test]
+    fn thin_triangle_still_gets_texels() {
+        // A sliver 1 m long and 1 mm wide at 5 cm texels covers no texel centre.
+        let mut scene = quad_scene(1.0);
+        scene.mesh.positions = vec![Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.5, 0.0, 0.001)];
+        scene.mesh.triangles = vec![[0, 2, 1]];
+        scene.mesh.material_ids = vec![0];
+        let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.05)).unwrap();
+        assert!(atlas.receivers.len() >= 20, "only {} texels", atlas.receivers.len());
+    }
+
+    #[test]
+    fn bilinear_lookups_inside_charts_never_see_empty_texels() {
+        let scene = quad_scene(1.0);
+        let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.1)).unwrap();
+        let lightmap = atlas.to_lightmap(&vec![Rgb::ONE; atlas.receivers.len()]);
+        // A constant lightmap must read back as exactly one everywhere on the
+        // geometry, edges and corners included: any empty (zero) texel in a
+        // bilinear footprint would pull the value below one.
+        let steps = 50;
+        for triangle in 0..scene.mesh.triangles.len() as u32 {
+            for i in 0..=steps {
+                for j in 0..=(steps - i) {
+                    let barycentric = Vec2::new(i as f32 / steps as f32, j as f32 / steps as f32);
+                    let value = atlas.sample(&lightmap, triangle, barycentric);
+                    assert!((value - Rgb::ONE).abs().max_element() < 1e-5, "{value} at {triangle} {barycentric}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn dilation_does_not_cross_charts() {
+        let scene = quad_scene(1.0);
+        let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.1)).unwrap();
+        // Chart of the floor is 1.0, chart of the wall is 2.0.
+        let values: Vec<Rgb> = (0..atlas.receivers.len())
+            .map(|r| if atlas.receivers.normals[r].y.abs() > 0.5 { Rgb::ONE } else { Rgb::splat(2.0) })
+            .collect();
+        let lightmap = atlas.to_lightmap(&values);
+        for triangle in 0..4u32 {
+            let expected = if scene.mesh.geometric_normal(triangle as usize).y.abs() > 0.5 { 1.0 } else { 2.0 };
+            for barycentric in [Vec2::ZERO, Vec2::X, Vec2::Y, Vec2::splat(0.5), Vec2::splat(1.0 / 3.0)] {
+                let value = atlas.sample(&lightmap, triangle, barycentric);
+                assert!((value.x - expected).abs() < 1e-5, "triangle {triangle} at {barycentric}: {value}");
+            }
+        }
+    }
+
+    #[test]
+    fn target_resolution_is_respected() {
+        let scene = quad_scene(3.0);
+        for target in [32, 64, 128] {
+            let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(target)).unwrap();
+            assert!(atlas.width.max(atlas.height) <= target);
+            // Not wastefully small either. Each chart costs 2 * GUTTER + 1 texels
+            // of border per axis, which dominates at 32; from 64 on at least a
+            // quarter of the target's texels must be receivers.
+            if target >= 64 {
+                assert!(atlas.receivers.len() as f64 > 0.25 * (target * target) as f64, "{target}: {}", atlas.receivers.len());
+            }
+        }
+    }
+
+    #[test]
+    fn invalid_density_is_an_error() {
+        let scene = quad_scene(1.0);
+        assert!(Atlas::build(&scene, TexelDensity::MetresPerTexel(0.0)).is_err());
+        assert!(Atlas::build(&scene, TexelDensity::MetresPerTexel(f32::NAN)).is_err());
+        assert!(Atlas::build(&scene, TexelDensity::TargetResolution(1 << 20)).is_err());
+    }
+
+    #[test]
+    fn overlapping_mesh_uvs_are_replaced() {
+        let mut scene = quad_scene(1.0);
+        // Every vertex at the same UV region: overlapping.
+        scene.mesh.lightmap_uvs = vec![Vec2::new(0.1, 0.1), Vec2::new(0.9, 0.1), Vec2::new(0.9, 0.9), Vec2::new(0.1, 0.9), Vec2::new(0.1, 0.9), Vec2::new(0.9, 0.9)];
+        let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(32)).unwrap();
+        assert!(!atlas.from_mesh_uvs);
+    }
+
+    #[test]
+    fn closest_point_matches_inside_and_outside() {
+        let uvs = [Vec2::ZERO, Vec2::new(2.0, 0.0), Vec2::new(0.0, 2.0)];
+        let (distance, barycentric) = closest_barycentric(&uvs, Vec2::new(0.5, 0.5));
+        assert_eq!(distance, 0.0);
+        assert!((barycentric - Vec2::splat(0.25)).length() < 1e-6);
+        let (distance, barycentric) = closest_barycentric(&uvs, Vec2::new(1.0, -1.0));
+        assert!((distance - 1.0).abs() < 1e-6);
+        assert!((barycentric - Vec2::new(0.5, 0.0)).length() < 1e-6);
+    }
+}

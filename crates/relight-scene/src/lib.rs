@@ -1,0 +1,22 @@
+//! The static scene every relight technique works on, how it is read from
+//! disk, and its lightmap atlas.
+//!
+//! Data flow: a `scene.toml` names a mesh (OBJ+MTL or glTF) and adds a camera,
+//! lights and an environment; [`load_scene`] turns all of it into one
+//! [`Scene`] (triangles, Lambertian materials, textures, lights). The
+//! [`atlas`] module then parameterises the static geometry for lightmaps and
+//! produces the [`atlas::Receivers`] (lightmap texels that cover geometry)
+//! on which every technique stores, and is measured on, indirect light.
+//! Lights are the only part of a scene that changes from frame to frame.
+
+pub mod atlas;
+mod error;
+pub mod generate;
+mod gltf_loader;
+mod model;
+mod obj_loader;
+mod scene_file;
+
+pub use error::SceneError;
+pub use model::*;
+pub use scene_file::{load_scene, parse_scene_file, SceneFile};

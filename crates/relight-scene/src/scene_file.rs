@@ -1,0 +1,656 @@
+//! The `scene.toml` format and the one entry point that turns it into a
+//! [`Scene`].
+//!
+//! Design choices:
+//! - The TOML is read into private `Raw*` structs with serde
+//!   `deny_unknown_fields`, so a typo such as `lihgts` is an error naming the
+//!   key, the file and the line, instead of a silently ignored section.
+//!   Technique sections (`[srp]`, `[[dynamic]]`, ...) are declared as raw
+//!   `toml::Value`s and handed on untouched in [`SceneFile::extra`]: each
+//!   technique validates its own section.
+//! - Numeric fields are `toml::Spanned` so that validation, which happens
+//!   right here where the values are read, can point at the offending line.
+//! - Work shared by both mesh loaders (texture decoding, warnings, dropping
+//!   degenerate triangles, choosing a camera) lives here so that OBJ and glTF
+//!   scenes obey exactly the same rules.
+
+use crate::{gltf_loader, obj_loader};
+use crate::{Camera, Environment, Light, Material, Mesh, Scene, SceneError, Texture};
+use glam::Vec3;
+use relight_core::colour::{is_valid_radiometric, srgb_to_linear};
+use relight_core::Rgb;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use toml::Spanned;
+
+/// Top-level sections that belong to techniques; their content passes through
+/// unparsed in [`SceneFile::extra`].
+pub const TECHNIQUE_SECTIONS: [&str; 5] = ["pic", "srp", "prm", "lightskin", "dynamic"];
+
+/// Largest texture side accepted; larger images are refused before decoding
+/// so that a hostile header cannot make us allocate gigabytes.
+pub(crate) const MAX_TEXTURE_SIDE: u32 = 16_384;
+
+/// A parsed and validated `scene.toml`, before the mesh is read.
+#[derive(Clone, Debug)]
+pub struct SceneFile {
+    /// The scene file itself.
+    pub path: PathBuf,
+    /// The mesh file, resolved against the scene file's folder.
+    pub mesh: PathBuf,
+    /// `None` when the file has no `[camera]`: the mesh's camera (glTF) or
+    /// an automatic framing is used instead.
+    pub camera: Option<Camera>,
+    /// Lights from the TOML; they are added to the lights of the mesh file.
+    pub lights: Vec<Light>,
+    /// Black when the file has no `[environment]`.
+    pub environment: Environment,
+    /// Raw technique sections keyed by name (see [`TECHNIQUE_SECTIONS`]).
+    pub extra: BTreeMap<String, toml::Value>,
+}
+
+type Spanned3 = Spanned<[f32; 3]>;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSceneFile {
+    mesh: Spanned<String>,
+    camera: Option<RawCamera>,
+    #[serde(default)]
+    lights: Vec<RawLight>,
+    environment: Option<RawEnvironment>,
+    pic: Option<toml::Value>,
+    srp: Option<toml::Value>,
+    prm: Option<toml::Value>,
+    lightskin: Option<toml::Value>,
+    dynamic: Option<toml::Value>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawCamera {
+    eye: Spanned3,
+    target: Spanned3,
+    up: Option<Spanned3>,
+    fov_y: Spanned<f32>,
+    resolution: Option<Spanned<[u32; 2]>>,
+}
+
+/// One struct for every kind, rather than a serde-tagged enum, so that a
+/// field that does not belong to the kind gets a message naming both.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLight {
+    kind: Spanned<String>,
+    position: Option<Spanned3>,
+    direction: Option<Spanned3>,
+    intensity: Option<Spanned3>,
+    irradiance: Option<Spanned3>,
+    inner_angle: Option<Spanned<f32>>,
+    outer_angle: Option<Spanned<f32>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawEnvironment {
+    radiance: Spanned3,
+}
+
+/// 1-based line of a byte offset, for error messages.
+fn line_of(text: &str, offset: usize) -> usize {
+    let end = offset.min(text.len());
+    text.as_bytes()[..end]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
+        + 1
+}
+
+/// Builds `SceneError::Syntax` errors that point into one text file.
+struct TextSource<'a> {
+    path: &'a Path,
+    text: &'a str,
+}
+
+impl TextSource<'_> {
+    fn error_at<T>(&self, spanned: &Spanned<T>, message: impl Into<String>) -> SceneError {
+        SceneError::Syntax {
+            path: self.path.to_path_buf(),
+            line: line_of(self.text, spanned.span().start),
+            message: message.into(),
+        }
+    }
+
+    fn finite_vec3(&self, field: &Spanned3, name: &str) -> Result<Vec3, SceneError> {
+        let value = Vec3::from_array(*field.get_ref());
+        if value.is_finite() {
+            Ok(value)
+        } else {
+            Err(self.error_at(field, format!("`{name}` must be three finite numbers")))
+        }
+    }
+
+    fn direction(&self, field: &Spanned3, name: &str) -> Result<Vec3, SceneError> {
+        let value = self.finite_vec3(field, name)?;
+        let length = value.length();
+        if length.is_finite() && length > 1e-12 {
+            Ok(value / length)
+        } else {
+            Err(self.error_at(field, format!("`{name}` must be a non-zero vector")))
+        }
+    }
+
+    fn radiometric(&self, field: &Spanned3, name: &str) -> Result<Rgb, SceneError> {
+        let value = Vec3::from_array(*field.get_ref());
+        if is_valid_radiometric(value) {
+            Ok(value)
+        } else {
+            Err(self.error_at(
+                field,
+                format!(
+                    "`{name}` must be three finite, non-negative numbers (one per RGB channel)"
+                ),
+            ))
+        }
+    }
+
+    fn camera(&self, raw: &RawCamera) -> Result<Camera, SceneError> {
+        let eye = self.finite_vec3(&raw.eye, "camera.eye")?;
+        let target = self.finite_vec3(&raw.target, "camera.target")?;
+        let up = match &raw.up {
+            Some(up) => self.direction(up, "camera.up")?,
+            None => Vec3::Y,
+        };
+        let forward = target - eye;
+        if !(forward.length() > 1e-9) {
+            return Err(self.error_at(&raw.target, "`camera.target` must differ from `camera.eye`"));
+        }
+        if forward.normalize().cross(up).length() < 1e-6 {
+            return Err(self.error_at(
+                &raw.target,
+                "the camera looks along `camera.up`: choose an `up` that is not parallel to target - eye",
+            ));
+        }
+        let fov_y = *raw.fov_y.get_ref();
+        if !(fov_y > 0.0 && fov_y < 180.0) {
+            return Err(self.error_at(
+                &raw.fov_y,
+                format!("`camera.fov_y` is {fov_y}: use a vertical field of view in degrees, between 0 and 180 (exclusive)"),
+            ));
+        }
+        let resolution = match &raw.resolution {
+            Some(resolution) => {
+                let [width, height] = *resolution.get_ref();
+                if !(1..=MAX_TEXTURE_SIDE).contains(&width)
+                    || !(1..=MAX_TEXTURE_SIDE).contains(&height)
+                {
+                    return Err(self.error_at(
+                        resolution,
+                        format!("`camera.resolution` is {width} x {height}: width and height must be between 1 and {MAX_TEXTURE_SIDE}"),
+                    ));
+                }
+                [width, height]
+            }
+            None => Camera::default().resolution,
+        };
+        Ok(Camera {
+            eye,
+            target,
+            up,
+            fov_y_degrees: fov_y,
+            resolution,
+        })
+    }
+
+    fn light(&self, raw: &RawLight) -> Result<Light, SceneError> {
+        let kind = raw.kind.get_ref().as_str();
+        let (required, allowed): (&[&str], &[&str]) = match kind {
+            "point" => (&["position", "intensity"], &["position", "intensity"]),
+            "directional" => (&["direction", "irradiance"], &["direction", "irradiance"]),
+            "spot" => (
+                &[
+                    "position",
+                    "direction",
+                    "intensity",
+                    "inner_angle",
+                    "outer_angle",
+                ],
+                &[
+                    "position",
+                    "direction",
+                    "intensity",
+                    "inner_angle",
+                    "outer_angle",
+                ],
+            ),
+            other => return Err(self.error_at(
+                &raw.kind,
+                format!(
+                    "unknown light kind \"{other}\": use \"point\", \"directional\" or \"spot\""
+                ),
+            )),
+        };
+        let present: [(&str, Option<std::ops::Range<usize>>); 6] = [
+            ("position", raw.position.as_ref().map(Spanned::span)),
+            ("direction", raw.direction.as_ref().map(Spanned::span)),
+            ("intensity", raw.intensity.as_ref().map(Spanned::span)),
+            ("irradiance", raw.irradiance.as_ref().map(Spanned::span)),
+            ("inner_angle", raw.inner_angle.as_ref().map(Spanned::span)),
+            ("outer_angle", raw.outer_angle.as_ref().map(Spanned::span)),
+        ];
+        for (name, span) in &present {
+            match span {
+                Some(span) if !allowed.contains(name) => {
+                    return Err(SceneError::Syntax {
+                        path: self.path.to_path_buf(),
+                        line: line_of(self.text, span.start),
+                        message: format!(
+                            "a {kind} light has no `{name}`: its fields are {}",
+                            allowed.join(", ")
+                        ),
+                    });
+                }
+                None if required.contains(name) => {
+                    return Err(self.error_at(
+                        &raw.kind,
+                        format!(
+                            "this {kind} light lacks `{name}`: a {kind} light needs {}",
+                            required.join(", ")
+                        ),
+                    ));
+                }
+                _ => {}
+            }
+        }
+        // The loop above guarantees every required field is present.
+        let missing = || self.error_at(&raw.kind, "internal: light field vanished");
+        match kind {
+            "point" => Ok(Light::Point {
+                position: self
+                    .finite_vec3(raw.position.as_ref().ok_or_else(missing)?, "position")?,
+                intensity: self
+                    .radiometric(raw.intensity.as_ref().ok_or_else(missing)?, "intensity")?,
+            }),
+            "directional" => Ok(Light::Directional {
+                direction: self
+                    .direction(raw.direction.as_ref().ok_or_else(missing)?, "direction")?,
+                irradiance: self
+                    .radiometric(raw.irradiance.as_ref().ok_or_else(missing)?, "irradiance")?,
+            }),
+            _ => {
+                let inner = raw.inner_angle.as_ref().ok_or_else(missing)?;
+                let outer = raw.outer_angle.as_ref().ok_or_else(missing)?;
+                let (inner_degrees, outer_degrees) = (*inner.get_ref(), *outer.get_ref());
+                if !(0.0..=90.0).contains(&outer_degrees) || !(outer_degrees > 0.0) {
+                    return Err(self.error_at(
+                        outer,
+                        format!("`outer_angle` is {outer_degrees}: use a half-angle in degrees, above 0 and at most 90"),
+                    ));
+                }
+                if !(0.0..=outer_degrees).contains(&inner_degrees) {
+                    return Err(self.error_at(
+                        inner,
+                        format!("`inner_angle` is {inner_degrees}: use a half-angle in degrees between 0 and `outer_angle` ({outer_degrees})"),
+                    ));
+                }
+                Ok(Light::Spot {
+                    position: self
+                        .finite_vec3(raw.position.as_ref().ok_or_else(missing)?, "position")?,
+                    direction: self
+                        .direction(raw.direction.as_ref().ok_or_else(missing)?, "direction")?,
+                    intensity: self
+                        .radiometric(raw.intensity.as_ref().ok_or_else(missing)?, "intensity")?,
+                    inner_angle: inner_degrees.to_radians(),
+                    outer_angle: outer_degrees.to_radians(),
+                })
+            }
+        }
+    }
+}
+
+/// Reads and validates a scene file without touching the mesh it names.
+pub fn parse_scene_file(path: &Path) -> Result<SceneFile, SceneError> {
+    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let text = text_from_bytes(path, &bytes)?;
+    parse_scene_text(path, &text)
+}
+
+/// UTF-8 decoding with the line of the first bad byte in the error.
+pub(crate) fn text_from_bytes(path: &Path, bytes: &[u8]) -> Result<String, SceneError> {
+    String::from_utf8(bytes.to_vec()).map_err(|error| {
+        let valid = error.utf8_error().valid_up_to();
+        SceneError::Syntax {
+            path: path.to_path_buf(),
+            line: bytes[..valid].iter().filter(|&&b| b == b'\n').count() + 1,
+            message: "the file is not valid UTF-8 text: save it as UTF-8".into(),
+        }
+    })
+}
+
+fn parse_scene_text(path: &Path, text: &str) -> Result<SceneFile, SceneError> {
+    let raw: RawSceneFile = toml::from_str(text).map_err(|error| {
+        let line = error.span().map_or(1, |span| line_of(text, span.start));
+        let mut message = error.message().trim().to_string();
+        if message.contains("unknown field") {
+            message.push_str(&format!(
+                " (technique sections allowed at the top level: {})",
+                TECHNIQUE_SECTIONS.join(", ")
+            ));
+        }
+        SceneError::Syntax {
+            path: path.to_path_buf(),
+            line,
+            message,
+        }
+    })?;
+    let source = TextSource { path, text };
+
+    if raw.mesh.get_ref().trim().is_empty() {
+        return Err(source.error_at(
+            &raw.mesh,
+            "`mesh` is empty: name an .obj, .gltf or .glb file relative to this scene file",
+        ));
+    }
+    let folder = path.parent().unwrap_or(Path::new(""));
+    let mesh = folder.join(raw.mesh.get_ref());
+    let camera = raw
+        .camera
+        .as_ref()
+        .map(|camera| source.camera(camera))
+        .transpose()?;
+    let lights = raw
+        .lights
+        .iter()
+        .map(|light| source.light(light))
+        .collect::<Result<Vec<_>, _>>()?;
+    let environment = match &raw.environment {
+        Some(environment) => Environment {
+            radiance: source.radiometric(&environment.radiance, "environment.radiance")?,
+        },
+        None => Environment::default(),
+    };
+    let extra: BTreeMap<String, toml::Value> = [
+        ("pic", raw.pic),
+        ("srp", raw.srp),
+        ("prm", raw.prm),
+        ("lightskin", raw.lightskin),
+        ("dynamic", raw.dynamic),
+    ]
+    .into_iter()
+    .filter_map(|(name, value)| value.map(|value| (name.to_string(), value)))
+    .collect();
+
+    Ok(SceneFile {
+        path: path.to_path_buf(),
+        mesh,
+        camera,
+        lights,
+        environment,
+        extra,
+    })
+}
+
+/// What a mesh loader hands back before the shared clean-up.
+#[derive(Default)]
+pub(crate) struct LoadedMesh {
+    pub mesh: Mesh,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    pub lights: Vec<Light>,
+    pub camera: Option<Camera>,
+    pub warnings: Vec<String>,
+}
+
+/// Reads a scene file, its mesh, materials and textures.
+pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
+    let file = parse_scene_file(path)?;
+    let extension = file
+        .mesh
+        .extension()
+        .and_then(|extension| extension.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    let loaded = match extension.as_str() {
+        "obj" => obj_loader::load_obj(&file.mesh)?,
+        "gltf" | "glb" => gltf_loader::load_gltf(&file.mesh)?,
+        _ => {
+            return Err(SceneError::UnsupportedFormat {
+                path: file.mesh.clone(),
+                extension,
+            })
+        }
+    };
+    finish_scene(file, loaded)
+}
+
+fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError> {
+    let LoadedMesh {
+        mut mesh,
+        materials,
+        textures,
+        mut lights,
+        camera: mesh_camera,
+        mut warnings,
+    } = loaded;
+    if let Some(position) = mesh.positions.iter().position(|p| !p.is_finite()) {
+        return Err(SceneError::Invalid {
+            path: file.mesh.clone(),
+            message: format!("vertex {position} has a non-finite coordinate: fix or remove it"),
+        });
+    }
+    let dropped = drop_degenerate_triangles(&mut mesh);
+    if dropped > 0 {
+        warn(
+            &mut warnings,
+            format!(
+                "{}: dropped {dropped} degenerate triangle(s) (zero area or non-finite)",
+                file.mesh.display()
+            ),
+        );
+    }
+    if mesh.triangles.is_empty() {
+        return Err(SceneError::Empty { path: file.mesh });
+    }
+    debug_assert!(mesh
+        .material_ids
+        .iter()
+        .all(|&id| (id as usize) < materials.len()));
+
+    lights.extend(file.lights);
+    let camera = match (file.camera, mesh_camera) {
+        (Some(camera), _) | (None, Some(camera)) => camera,
+        (None, None) => {
+            warn(
+                &mut warnings,
+                format!(
+                    "{}: no camera in the scene file or the mesh; framing the whole scene from +Z (add a [camera] section)",
+                    file.path.display()
+                ),
+            );
+            framing_camera(&mesh)
+        }
+    };
+    Ok(Scene {
+        mesh,
+        materials,
+        textures,
+        lights,
+        camera,
+        environment: file.environment,
+        source: file.path,
+        warnings,
+    })
+}
+
+/// A camera on +Z that sees the whole bounding box, for meshes without one.
+fn framing_camera(mesh: &Mesh) -> Camera {
+    let (low, high) = mesh.bounds();
+    let centre = (low + high) * 0.5;
+    let radius = ((high - low).length() * 0.5).max(1e-3);
+    let fov_y_degrees = 45.0_f32;
+    let distance = radius / (fov_y_degrees.to_radians() * 0.5).sin();
+    Camera {
+        eye: centre + Vec3::Z * distance,
+        target: centre,
+        up: Vec3::Y,
+        fov_y_degrees,
+        resolution: Camera::default().resolution,
+    }
+}
+
+/// Removes zero-area and non-finite triangles, then the vertices nobody uses
+/// any more, so bounds and vertex counts describe real geometry.
+fn drop_degenerate_triangles(mesh: &mut Mesh) -> usize {
+    let before = mesh.triangles.len();
+    let mut kept_triangles = Vec::with_capacity(before);
+    let mut kept_materials = Vec::with_capacity(before);
+    for (triangle, &material) in mesh.triangles.iter().zip(&mesh.material_ids) {
+        let [a, b, c] = triangle.map(|index| mesh.positions[index as usize]);
+        let doubled_area = (b - a).cross(c - a);
+        let usable = doubled_area.is_finite()
+            && doubled_area.length_squared() > 0.0
+            && doubled_area.normalize_or_zero() != Vec3::ZERO;
+        if usable {
+            kept_triangles.push(*triangle);
+            kept_materials.push(material);
+        }
+    }
+    let dropped = before - kept_triangles.len();
+    mesh.triangles = kept_triangles;
+    mesh.material_ids = kept_materials;
+
+    // New indices keep the old vertex order, so nothing moves when every
+    // vertex is still used.
+    let mut used = vec![false; mesh.positions.len()];
+    for triangle in &mesh.triangles {
+        for &index in triangle {
+            used[index as usize] = true;
+        }
+    }
+    let mut remap = vec![u32::MAX; mesh.positions.len()];
+    let mut next = 0u32;
+    for (old, _) in used.iter().enumerate().filter(|(_, &used)| used) {
+        remap[old] = next;
+        next += 1;
+    }
+    if (next as usize) < mesh.positions.len() {
+        for triangle in &mut mesh.triangles {
+            for index in triangle.iter_mut() {
+                *index = remap[*index as usize];
+            }
+        }
+        let compact = |values: &mut Vec<glam::Vec2>| {
+            if values.is_empty() {
+                return;
+            }
+            let mut out = vec![glam::Vec2::ZERO; next as usize];
+            for (old, &new) in remap.iter().enumerate() {
+                if new != u32::MAX {
+                    out[new as usize] = values[old];
+                }
+            }
+            *values = out;
+        };
+        compact(&mut mesh.texcoords);
+        compact(&mut mesh.lightmap_uvs);
+        let mut positions = vec![Vec3::ZERO; next as usize];
+        for (old, &new) in remap.iter().enumerate() {
+            if new != u32::MAX {
+                positions[new as usize] = mesh.positions[old];
+            }
+        }
+        mesh.positions = positions;
+    }
+    dropped
+}
+
+/// Records a non-fatal problem both for the caller ([`Scene::warnings`]) and
+/// for whoever watches the log.
+pub(crate) fn warn(warnings: &mut Vec<String>, message: String) {
+    tracing::warn!("{message}");
+    warnings.push(message);
+}
+
+/// Decodes a PNG or JPEG into linear RGB. The header is checked before any
+/// pixel buffer exists, so oversized images cost nothing. Alpha is ignored:
+/// relight materials are opaque.
+pub(crate) fn decode_texture(
+    bytes: &[u8],
+    name: String,
+    source: &Path,
+) -> Result<Texture, SceneError> {
+    use image::ImageReader;
+    use std::io::Cursor;
+    let invalid = |message: String| SceneError::Invalid {
+        path: source.to_path_buf(),
+        message,
+    };
+    let reader = || {
+        ImageReader::new(Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|error| invalid(format!("texture {name}: {error}")))
+    };
+    let probe = reader()?;
+    if probe.format().is_none() {
+        return Err(invalid(format!(
+            "texture {name} is neither PNG nor JPEG: convert it to one of those"
+        )));
+    }
+    let (width, height) = probe
+        .into_dimensions()
+        .map_err(|error| invalid(format!("texture {name} has an unreadable header: {error}")))?;
+    if width == 0 || height == 0 || width > MAX_TEXTURE_SIDE || height > MAX_TEXTURE_SIDE {
+        return Err(invalid(format!(
+            "texture {name} is {width} x {height}: sides must be between 1 and {MAX_TEXTURE_SIDE} pixels; downscale it"
+        )));
+    }
+    let mut decoder = reader()?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_TEXTURE_SIDE);
+    limits.max_image_height = Some(MAX_TEXTURE_SIDE);
+    // 16 bytes per pixel covers RGBA32F, the widest layout the decoders use.
+    limits.max_alloc = Some(width as u64 * height as u64 * 16 + (1 << 20));
+    decoder.limits(limits);
+    let decoded = decoder
+        .decode()
+        .map_err(|error| invalid(format!("texture {name} cannot be decoded: {error}")))?;
+    let texels: Vec<Rgb> =
+        if decoded.color().bytes_per_pixel() / decoded.color().channel_count() == 1 {
+            let table: Vec<f32> = (0..256)
+                .map(|value| srgb_to_linear(value as f32 / 255.0))
+                .collect();
+            decoded
+                .to_rgb8()
+                .pixels()
+                .map(|pixel| {
+                    Vec3::new(
+                        table[pixel[0] as usize],
+                        table[pixel[1] as usize],
+                        table[pixel[2] as usize],
+                    )
+                })
+                .collect()
+        } else {
+            decoded
+                .to_rgb32f()
+                .pixels()
+                .map(|pixel| {
+                    Vec3::from_array(
+                        pixel
+                            .0
+                            .map(|channel| srgb_to_linear(channel.clamp(0.0, 1.0))),
+                    )
+                })
+                .collect()
+        };
+    Ok(Texture {
+        name,
+        width: decoded.width(),
+        height: decoded.height(),
+        texels,
+    })
+}

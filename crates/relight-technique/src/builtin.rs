@@ -1,0 +1,266 @@
+//! The two techniques every scene has: `direct` (no indirect light) and
+//! `reference` (path-traced indirect light per lightmap receiver).
+
+use crate::params::parse_params;
+use crate::{Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError, TechniqueKind};
+use glam::Vec3;
+use relight_core::sampling::SampleStream;
+use relight_core::Rgb;
+use relight_scene::Light;
+use relight_trace::path::{PathSettings, PathTracer};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// `direct`: indirect light is zero. Its update computes the direct
+/// lightmap at every receiver, which makes it the cost floor every
+/// technique pays and a benchmark of the direct-light service.
+pub struct DirectKind;
+
+struct DirectOnly {
+    context: Arc<SceneContext>,
+    direct_lightmap: Vec<Rgb>,
+    zero: Vec<Rgb>,
+    timings: StageTimings,
+}
+
+impl TechniqueKind for DirectKind {
+    fn name(&self) -> &'static str {
+        "direct"
+    }
+    fn summary(&self) -> &'static str {
+        "direct light only: no indirect light (the lower bound)"
+    }
+    fn needs_bake(&self) -> bool {
+        false
+    }
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        _bake: Option<&[u8]>,
+        params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError> {
+        if let Some((key, _)) = params.first() {
+            return Err(crate::ParamError {
+                technique: "direct",
+                message: format!("unknown key '{key}': this technique has no parameters"),
+            }
+            .into());
+        }
+        let receivers = context.atlas.receivers.len();
+        Ok(Box::new(DirectOnly {
+            context,
+            direct_lightmap: vec![Rgb::ZERO; receivers],
+            zero: vec![Rgb::ZERO; receivers],
+            timings: StageTimings::default(),
+        }))
+    }
+}
+
+impl Technique for DirectOnly {
+    fn name(&self) -> &'static str {
+        "direct"
+    }
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        self.timings.clear();
+        let context = &self.context;
+        let lightmap = &mut self.direct_lightmap;
+        self.timings.time("direct lightmap", || {
+            let receivers = &context.atlas.receivers;
+            context.direct().irradiance_batch(frame.lights, &receivers.positions, &receivers.normals, lightmap);
+        });
+        Ok(())
+    }
+    fn indirect_irradiance(&self, _point: &SurfacePoint) -> Rgb {
+        Rgb::ZERO
+    }
+    fn indirect_irradiance_in_space(&self, _position: Vec3, _normal: Vec3) -> Rgb {
+        Rgb::ZERO
+    }
+    fn receiver_irradiance(&self) -> Option<&[Rgb]> {
+        Some(&self.zero)
+    }
+    fn timings(&self) -> &StageTimings {
+        &self.timings
+    }
+    fn memory(&self) -> Vec<MemoryEntry> {
+        vec![MemoryEntry::new("direct lightmap", self.direct_lightmap.len() * 12)]
+    }
+}
+
+/// Parameters of the `reference` technique.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceParams {
+    /// Paths per receiver per update.
+    pub samples: u32,
+    /// Indirect bounces (all bounces in practice: Russian roulette ends paths).
+    pub max_bounces: u32,
+    /// Paths per query for points in space.
+    pub space_samples: u32,
+    pub seed: u64,
+}
+
+impl Default for ReferenceParams {
+    fn default() -> Self {
+        Self {
+            samples: 256,
+            max_bounces: 64,
+            space_samples: 64,
+            seed: 1,
+        }
+    }
+}
+
+/// Per-receiver path-traced indirect irradiance with its standard error.
+#[derive(Clone, Debug, Default)]
+pub struct ReferenceLightmap {
+    pub mean: Vec<Rgb>,
+    pub standard_error: Vec<Rgb>,
+}
+
+/// Path traces indirect irradiance at every receiver of `context`.
+pub fn reference_receiver_irradiance(
+    context: &SceneContext,
+    lights: &[Light],
+    settings: PathSettings,
+    samples: u32,
+    progress: &dyn Progress,
+) -> ReferenceLightmap {
+    let direct = context.direct();
+    let tracer = PathTracer::new(&direct, settings);
+    let receivers = &context.atlas.receivers;
+    let count = receivers.len();
+    let mut sums = vec![[0.0f64; 3]; count];
+    let mut squares = vec![[0.0f64; 3]; count];
+    // Passes of 16 samples keep the progress bar moving; the sum is the
+    // same as one pass because every sample has its own stream.
+    let pass = 16u32.min(samples.max(1));
+    progress.start("reference lightmap", samples as u64);
+    let mut done = 0u32;
+    while done < samples {
+        let this_pass = pass.min(samples - done);
+        let mut pass_sums = vec![[0.0f64; 3]; count];
+        for sample in done..done + this_pass {
+            tracer.indirect_irradiance_sums(lights, &receivers.positions, &receivers.normals, sample, 1, &mut pass_sums);
+            for index in 0..count {
+                for channel in 0..3 {
+                    sums[index][channel] += pass_sums[index][channel];
+                    squares[index][channel] += pass_sums[index][channel] * pass_sums[index][channel];
+                }
+                pass_sums[index] = [0.0; 3];
+            }
+        }
+        done += this_pass;
+        progress.advance(this_pass as u64);
+    }
+    progress.finish();
+    let n = samples.max(1) as f64;
+    let mut result = ReferenceLightmap::default();
+    for index in 0..count {
+        let mean: [f64; 3] = std::array::from_fn(|c| sums[index][c] / n);
+        let error: [f64; 3] = std::array::from_fn(|c| {
+            let variance = (squares[index][c] / n - mean[c] * mean[c]).max(0.0) * n / (n - 1.0).max(1.0);
+            (variance / n).sqrt()
+        });
+        result.mean.push(Rgb::new(mean[0] as f32, mean[1] as f32, mean[2] as f32));
+        result.standard_error.push(Rgb::new(error[0] as f32, error[1] as f32, error[2] as f32));
+    }
+    result
+}
+
+/// `reference`: path-traced indirect light, the ground truth.
+pub struct ReferenceKind;
+
+struct Reference {
+    context: Arc<SceneContext>,
+    params: ReferenceParams,
+    receiver_values: Vec<Rgb>,
+    lightmap: Vec<Rgb>,
+    lights: Vec<Light>,
+    timings: StageTimings,
+}
+
+impl TechniqueKind for ReferenceKind {
+    fn name(&self) -> &'static str {
+        "reference"
+    }
+    fn summary(&self) -> &'static str {
+        "path-traced indirect light per receiver (ground truth; slow)"
+    }
+    fn needs_bake(&self) -> bool {
+        false
+    }
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        _bake: Option<&[u8]>,
+        params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError> {
+        let params = parse_params("reference", &ReferenceParams::default(), params)?;
+        Ok(Box::new(Reference {
+            context,
+            params,
+            receiver_values: Vec::new(),
+            lightmap: Vec::new(),
+            lights: Vec::new(),
+            timings: StageTimings::default(),
+        }))
+    }
+}
+
+impl Reference {
+    fn path_settings(&self) -> PathSettings {
+        PathSettings {
+            max_bounces: self.params.max_bounces,
+            seed: self.params.seed,
+            ..PathSettings::default()
+        }
+    }
+}
+
+impl Technique for Reference {
+    fn name(&self) -> &'static str {
+        "reference"
+    }
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        self.timings.clear();
+        self.lights = frame.lights.to_vec();
+        let settings = self.path_settings();
+        let samples = self.params.samples;
+        let context = &self.context;
+        let values = self.timings.time("path tracing", || {
+            reference_receiver_irradiance(context, frame.lights, settings, samples, &crate::NoProgress).mean
+        });
+        self.lightmap = self.timings.time("dilation", || context.atlas.to_lightmap(&values));
+        self.receiver_values = values;
+        Ok(())
+    }
+    fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
+        self.context.atlas.sample(&self.lightmap, point.triangle, point.barycentric)
+    }
+    fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
+        let direct = self.context.direct();
+        let tracer = PathTracer::new(&direct, self.path_settings());
+        let key = relight_core::sampling::mix64(position.x.to_bits() as u64 ^ ((position.y.to_bits() as u64) << 21) ^ ((position.z.to_bits() as u64) << 42));
+        let mut sum = Rgb::ZERO;
+        for sample in 0..self.params.space_samples {
+            let mut rng = SampleStream::new(self.params.seed, key, sample as u64);
+            sum += tracer.indirect_irradiance_sample(&self.lights, position, normal, 0, &mut rng, key ^ sample as u64);
+        }
+        sum / self.params.space_samples.max(1) as f32
+    }
+    fn receiver_irradiance(&self) -> Option<&[Rgb]> {
+        Some(&self.receiver_values)
+    }
+    fn timings(&self) -> &StageTimings {
+        &self.timings
+    }
+    fn memory(&self) -> Vec<MemoryEntry> {
+        vec![
+            MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
+            MemoryEntry::new("lightmap", self.lightmap.len() * 12),
+        ]
+    }
+}

@@ -1,0 +1,60 @@
+//! Everything built once per scene and shared by all techniques.
+
+use relight_scene::atlas::{Atlas, TexelDensity};
+use relight_scene::{Scene, SceneError};
+use relight_trace::direct::{DirectLight, DirectSettings, Emitters};
+use relight_trace::Bvh;
+use std::time::{Duration, Instant};
+
+/// Settings that shape the shared scene data.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ContextSettings {
+    pub lightmap: TexelDensity,
+    pub direct: DirectSettings,
+}
+
+impl Default for ContextSettings {
+    fn default() -> Self {
+        Self {
+            lightmap: TexelDensity::TargetResolution(128),
+            direct: DirectSettings::default(),
+        }
+    }
+}
+
+/// Scene, BVH, lightmap atlas and emitter table, built once.
+pub struct SceneContext {
+    pub scene: Scene,
+    pub bvh: Bvh,
+    pub atlas: Atlas,
+    pub emitters: Emitters,
+    pub settings: ContextSettings,
+    pub bvh_build_time: Duration,
+    pub atlas_build_time: Duration,
+}
+
+impl SceneContext {
+    pub fn new(scene: Scene, settings: ContextSettings) -> Result<Self, SceneError> {
+        let start = Instant::now();
+        let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
+        let bvh_build_time = start.elapsed();
+        let start = Instant::now();
+        let atlas = Atlas::build(&scene, settings.lightmap)?;
+        let atlas_build_time = start.elapsed();
+        let emitters = Emitters::from_scene(&scene);
+        Ok(Self {
+            scene,
+            bvh,
+            atlas,
+            emitters,
+            settings,
+            bvh_build_time,
+            atlas_build_time,
+        })
+    }
+
+    /// The shared direct-light service over this scene.
+    pub fn direct(&self) -> DirectLight<'_> {
+        DirectLight::new(&self.scene, &self.bvh, &self.emitters, self.settings.direct)
+    }
+}

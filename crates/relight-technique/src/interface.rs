@@ -1,0 +1,167 @@
+//! The technique interface: what every GI technique offers the renderer,
+//! the benchmark and the comparison.
+
+use crate::SceneContext;
+use glam::{Vec2, Vec3};
+use relight_core::Rgb;
+use relight_scene::Light;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// A point on the static geometry, as the renderer finds it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    pub position: Vec3,
+    /// Geometric normal of the front face of `triangle`.
+    pub normal: Vec3,
+    pub triangle: u32,
+    /// (b1, b2) of `position` on `triangle`.
+    pub barycentric: Vec2,
+}
+
+/// The lights of one frame.
+#[derive(Clone, Copy, Debug)]
+pub struct Frame<'a> {
+    pub lights: &'a [Light],
+    pub index: u64,
+}
+
+/// Wall-clock time of each stage of the last update, in pipeline order.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StageTimings {
+    pub stages: Vec<(&'static str, Duration)>,
+}
+
+impl StageTimings {
+    pub fn clear(&mut self) {
+        self.stages.clear();
+    }
+
+    /// Runs `work`, records its duration under `stage`, returns its result.
+    pub fn time<T>(&mut self, stage: &'static str, work: impl FnOnce() -> T) -> T {
+        let start = std::time::Instant::now();
+        let result = work();
+        self.stages.push((stage, start.elapsed()));
+        result
+    }
+
+    pub fn total(&self) -> Duration {
+        self.stages.iter().map(|(_, duration)| *duration).sum()
+    }
+}
+
+/// One named buffer a technique keeps at run time.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MemoryEntry {
+    pub buffer: String,
+    pub bytes: usize,
+}
+
+impl MemoryEntry {
+    pub fn new(buffer: impl Into<String>, bytes: usize) -> Self {
+        Self {
+            buffer: buffer.into(),
+            bytes,
+        }
+    }
+}
+
+/// Receives progress of long work; the CLI draws bars, libraries stay silent.
+pub trait Progress: Sync {
+    fn start(&self, stage: &str, total: u64);
+    fn advance(&self, amount: u64);
+    fn finish(&self);
+}
+
+/// Progress that goes nowhere.
+pub struct NoProgress;
+
+impl Progress for NoProgress {
+    fn start(&self, _stage: &str, _total: u64) {}
+    fn advance(&self, _amount: u64) {}
+    fn finish(&self) {}
+}
+
+/// A running GI technique for one scene.
+pub trait Technique: Send + Sync {
+    fn name(&self) -> &'static str;
+
+    /// Brings internal state up to date with `frame`'s lights.
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError>;
+
+    /// Indirect irradiance (W/m^2) arriving at a point of the static scene on
+    /// the side its `normal` faces.
+    fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb;
+
+    /// Indirect irradiance at an arbitrary point in space for a surface with
+    /// `normal` there (dynamic objects, back faces of thin geometry).
+    fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb;
+
+    /// Indirect radiance leaving a glossy (Blinn-Phong) surface toward the
+    /// viewer, when the technique models glossy transport.
+    fn glossy_radiance(&self, _point: &SurfacePoint, _toward_viewer: Vec3, _exponent: f32) -> Option<Rgb> {
+        None
+    }
+
+    /// Indirect irradiance per lightmap receiver after the last update, in
+    /// the atlas's receiver order, when the technique stores a lightmap.
+    fn receiver_irradiance(&self) -> Option<&[Rgb]>;
+
+    /// Stage timings of the last update.
+    fn timings(&self) -> &StageTimings;
+
+    /// Run-time buffers and their sizes.
+    fn memory(&self) -> Vec<MemoryEntry>;
+}
+
+/// A technique's factory: name, bake and creation. The CLI lists kinds in
+/// one table, so a new technique is one line there.
+pub trait TechniqueKind: Sync {
+    fn name(&self) -> &'static str;
+    fn summary(&self) -> &'static str;
+    fn needs_bake(&self) -> bool;
+
+    /// Precomputes the bake payload (technique-specific bytes).
+    fn bake(
+        &self,
+        _context: &SceneContext,
+        _params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        Err(TechniqueError::NoBake {
+            technique: self.name(),
+        })
+    }
+
+    /// Creates the technique, from a bake payload when it needs one.
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        bake: Option<&[u8]>,
+        params: &[(String, String)],
+        progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError>;
+}
+
+/// What can go wrong in a technique, each with what to do about it.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum TechniqueError {
+    #[error("technique '{technique}' needs no bake: render or bench it directly")]
+    NoBake { technique: &'static str },
+    #[error("technique '{technique}' needs a bake: run `relight bake SCENE --technique {technique} -o FILE` and pass --bake FILE")]
+    BakeRequired { technique: &'static str },
+    #[error(transparent)]
+    Params(#[from] crate::ParamError),
+    #[error("{path}: {message}")]
+    BakeFile { path: PathBuf, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Other(String),
+}

@@ -1,0 +1,25 @@
+//! The contract between relight's GI techniques and everything else.
+//!
+//! Data flow: a [`SceneContext`] (scene, BVH, lightmap atlas, emitters) is
+//! built once. A [`TechniqueKind`] bakes from it (or needs no bake) and
+//! creates a [`Technique`], which each frame [`Technique::update`]s its
+//! internal state from the current lights and then answers indirect
+//! irradiance at surface points of the static scene and at points in space.
+//! Direct light never comes from a technique: the renderer and every
+//! technique take it from the shared direct-light service, so techniques
+//! differ only in indirect light.
+//!
+//! The built-in kinds are `direct` (no indirect light, the lower bound) and
+//! `reference` (path-traced per-receiver indirect light, the ground truth).
+
+mod bakefile;
+mod builtin;
+mod context;
+mod interface;
+mod params;
+
+pub use bakefile::{read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC};
+pub use builtin::{reference_receiver_irradiance, DirectKind, ReferenceKind, ReferenceLightmap, ReferenceParams};
+pub use context::{ContextSettings, SceneContext};
+pub use interface::*;
+pub use params::{parse_params, ParamError};

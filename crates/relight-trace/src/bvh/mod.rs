@@ -1,0 +1,205 @@
+//! The ray-tracing acceleration structure: every bake and every frame's
+//! direct light traces against this, so it is the hot path of relight.
+//!
+//! Design:
+//! - **Build** ([`build`]): a binary binned-SAH tree (32 bins on all three
+//!   axes, cost counted in packets of four triangles because a leaf packet
+//!   costs the same for one to four triangles). Large nodes bin in parallel
+//!   and the two halves of a split are built with `rayon::join`. Every
+//!   decision is a pure function of the input (bins merge with min/max and
+//!   integer sums, which are order independent), so the tree is bit-identical
+//!   for any thread count. Deep, badly split chains fall back to median
+//!   splits, which bounds the depth and hence the traversal stack.
+//! - **Layout**: the binary tree is collapsed into a 4-wide BVH stored as two
+//!   flat arrays: [`WideNode`] (struct-of-arrays child bounds, so one ray
+//!   tests all four children with one SIMD slab test) and [`TrianglePacket`]
+//!   (up to four triangles' vertices copied in leaf order, struct-of-arrays,
+//!   tested together). Children are plain `u32` indices, so a GPU path can
+//!   upload both arrays as they are.
+//! - **Traversal** ([`traverse`]): ordered by entry distance for closest hit
+//!   (nearest child first, farther ones stacked with their distance so they
+//!   are skipped once a closer hit is known), unordered with early exit for
+//!   occlusion. The stack is a fixed array on the machine stack; nothing is
+//!   allocated per ray. The slab test picks near/far planes by the sign of
+//!   the ray direction and widens the far distance by a few ulps (Ize 2013),
+//!   so boxes are never missed by rounding.
+//! - **Triangles** ([`triangle`]): the watertight test of Woop, Benthin and
+//!   Wald (2013), four triangles per SIMD packet, with a double-precision
+//!   re-evaluation of edge functions that round to exactly zero. A ray
+//!   through a shared edge or vertex of a closed mesh hits at least one of
+//!   the triangles sharing it; degenerate triangles never hit.
+//! - **SIMD**: `glam::Vec4`, which is SSE2 on x86_64, NEON on aarch64 and a
+//!   scalar fallback elsewhere, so there is one portable code path.
+//!
+//! Triangles with zero area or non-finite vertices are dropped at build time
+//! (they can never be hit); [`Bvh::triangle_count`] still reports the input
+//! count and hits always name indices into the input list.
+
+mod build;
+#[cfg(feature = "embree")]
+pub mod embree;
+mod traverse;
+mod triangle;
+
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+
+#[cfg(feature = "embree")]
+pub use embree::EmbreeScene;
+
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    pub origin: Vec3,
+    /// Need not be unit length; `t` is measured in multiples of it.
+    pub direction: Vec3,
+    pub t_max: f32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    pub t: f32,
+    /// Index into the triangle list given to [`Bvh::build`].
+    pub triangle: u32,
+    /// Weights (b1, b2) of vertices 1 and 2: p = (1-b1-b2) v0 + b1 v1 + b2 v2.
+    pub barycentric: Vec2,
+}
+
+/// A child slot that holds nothing; its bounds are empty (min +inf, max -inf).
+pub const EMPTY_CHILD: u32 = u32::MAX;
+/// Set on a child reference that names a [`TrianglePacket`] instead of a node.
+pub const LEAF_FLAG: u32 = 1 << 31;
+
+/// One node of the 4-wide BVH. `bounds[2 * axis]` holds the minima and
+/// `bounds[2 * axis + 1]` the maxima of the four children along `axis`, so the
+/// near plane of an axis is `bounds[2 * axis + (direction < 0)]`.
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WideNode {
+    pub bounds: [[f32; 4]; 6],
+    /// Node index, `LEAF_FLAG | packet index`, or [`EMPTY_CHILD`].
+    pub children: [u32; 4],
+}
+
+/// Up to four triangles, vertices gathered in leaf order.
+/// `vertices[corner][axis][lane]`; unused lanes repeat the last used lane, so
+/// they can only ever report a hit the packet already reports.
+#[repr(C, align(16))]
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TrianglePacket {
+    pub vertices: [[[f32; 4]; 3]; 3],
+    /// Indices into the input triangle list.
+    pub triangles: [u32; 4],
+}
+
+pub struct Bvh {
+    nodes: Vec<WideNode>,
+    packets: Vec<TrianglePacket>,
+    input_triangle_count: usize,
+    stored_triangle_count: usize,
+    bounds: (Vec3, Vec3),
+}
+
+/// Rays per rayon task in the batch methods: large enough to amortise task
+/// overhead, small enough to balance incoherent batches across threads.
+const BATCH_CHUNK: usize = 256;
+
+impl Bvh {
+    /// Builds the tree in parallel on the current rayon pool. Deterministic:
+    /// the same input gives the same node and packet arrays on any number of
+    /// threads.
+    ///
+    /// # Panics
+    /// If a triangle names a vertex index outside `positions`.
+    pub fn build(positions: &[Vec3], triangles: &[[u32; 3]]) -> Bvh {
+        build::build(positions, triangles)
+    }
+
+    /// Closest hit with 0 < t < `ray.t_max`; front and back faces both hit.
+    #[inline]
+    pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        traverse::intersect(&self.nodes, &self.packets, ray)
+    }
+
+    /// Whether anything is hit with 0 < t < `ray.t_max`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray) -> bool {
+        traverse::occluded(&self.nodes, &self.packets, ray)
+    }
+
+    /// [`Bvh::intersect`] for every ray, in parallel.
+    ///
+    /// # Panics
+    /// If `hits` and `rays` differ in length.
+    pub fn intersect_batch(&self, rays: &[Ray], hits: &mut [Option<Hit>]) {
+        assert_eq!(rays.len(), hits.len(), "one hit slot per ray");
+        rays.par_chunks(BATCH_CHUNK)
+            .zip(hits.par_chunks_mut(BATCH_CHUNK))
+            .for_each(|(ray_chunk, hit_chunk)| {
+                for (ray, hit) in ray_chunk.iter().zip(hit_chunk) {
+                    *hit = self.intersect(ray);
+                }
+            });
+    }
+
+    /// [`Bvh::occluded`] for every ray, in parallel.
+    ///
+    /// # Panics
+    /// If `occluded` and `rays` differ in length.
+    pub fn occluded_batch(&self, rays: &[Ray], occluded: &mut [bool]) {
+        assert_eq!(rays.len(), occluded.len(), "one result slot per ray");
+        rays.par_chunks(BATCH_CHUNK)
+            .zip(occluded.par_chunks_mut(BATCH_CHUNK))
+            .for_each(|(ray_chunk, result_chunk)| {
+                for (ray, result) in ray_chunk.iter().zip(result_chunk) {
+                    *result = self.occluded(ray);
+                }
+            });
+    }
+
+    /// Number of triangles given to [`Bvh::build`], degenerate ones included.
+    pub fn triangle_count(&self) -> usize {
+        self.input_triangle_count
+    }
+
+    /// Number of triangles stored in leaves (the input minus degenerate ones).
+    pub fn stored_triangle_count(&self) -> usize {
+        self.stored_triangle_count
+    }
+
+    pub fn node_count(&self) -> usize {
+        self.nodes.len()
+    }
+
+    pub fn packet_count(&self) -> usize {
+        self.packets.len()
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        std::mem::size_of::<Self>()
+            + self.nodes.len() * std::mem::size_of::<WideNode>()
+            + self.packets.len() * std::mem::size_of::<TrianglePacket>()
+    }
+
+    /// Bounding box (min, max) of all stored triangles; both zero when none.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.bounds
+    }
+
+    /// The flat node array; node 0 is the root (always present).
+    pub fn nodes(&self) -> &[WideNode] {
+        &self.nodes
+    }
+
+    /// The flat leaf array that `LEAF_FLAG` children index.
+    pub fn packets(&self) -> &[TrianglePacket] {
+        &self.packets
+    }
+
+    /// Checks the tree invariants: every node is reached exactly once from
+    /// the root, every child's contents lie inside its slot bounds, every
+    /// stored triangle appears in exactly one leaf, empty slots have empty
+    /// bounds, and the depth fits the traversal stack.
+    pub fn validate(&self) -> Result<(), String> {
+        build::validate(self)
+    }
+}

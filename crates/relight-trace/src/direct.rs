@@ -1,0 +1,454 @@
+//! The direct-light service: incident irradiance from every light at batches
+//! of surface points, with exact shadows by shadow rays.
+//!
+//! Every technique calls this for its own sample points each frame and the
+//! renderer calls it for visible pixels, so direct light is computed one way
+//! everywhere and techniques differ only in indirect light. Area lights
+//! (emissive triangles) use a fixed number of stratified samples chosen in
+//! proportion to emitted power; the samples of a point depend only on the
+//! seed and the point's index, so a static point sees the same pattern every
+//! frame (no temporal flicker) and results do not depend on thread count.
+
+use crate::bvh::{Bvh, Ray};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use relight_core::sampling::{cosine_hemisphere_around, SampleStream};
+use relight_core::{luminance, Rgb};
+use relight_scene::{Light, Scene};
+
+/// Settings of the direct-light service.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DirectSettings {
+    /// Shadow rays per point toward emissive triangles (stratified over power).
+    pub area_light_samples: u32,
+    /// Cosine-distributed rays per point toward the constant environment.
+    pub environment_samples: u32,
+    pub seed: u64,
+}
+
+impl Default for DirectSettings {
+    fn default() -> Self {
+        Self {
+            area_light_samples: 16,
+            environment_samples: 16,
+            seed: 0x5EED,
+        }
+    }
+}
+
+/// Emissive triangles with a power-proportional sampling table.
+#[derive(Clone, Debug, Default)]
+pub struct Emitters {
+    pub triangles: Vec<u32>,
+    pub vertices: Vec<[Vec3; 3]>,
+    pub normals: Vec<Vec3>,
+    pub areas: Vec<f32>,
+    pub radiance: Vec<Rgb>,
+    /// Cumulative distribution over triangles, by area times luminance.
+    cdf: Vec<f32>,
+    pub total_power: f32,
+}
+
+impl Emitters {
+    pub fn from_scene(scene: &Scene) -> Self {
+        let mut emitters = Emitters::default();
+        let mut running = 0.0f64;
+        for triangle in scene.emissive_triangles() {
+            let area = scene.mesh.area(triangle as usize);
+            let radiance = scene.material_of(triangle as usize).emission;
+            let power = area as f64 * luminance(radiance).max(1e-12) as f64;
+            if area <= 0.0 {
+                continue;
+            }
+            running += power;
+            emitters.triangles.push(triangle);
+            emitters.vertices.push(scene.mesh.vertices(triangle as usize));
+            emitters.normals.push(scene.mesh.geometric_normal(triangle as usize));
+            emitters.areas.push(area);
+            emitters.radiance.push(radiance);
+            emitters.cdf.push(running as f32);
+        }
+        emitters.total_power = running as f32;
+        if running > 0.0 {
+            for value in &mut emitters.cdf {
+                *value /= running as f32;
+            }
+        }
+        emitters
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+
+    /// Picks a triangle for `u` in [0,1) and returns (index, probability).
+    #[inline]
+    fn pick(&self, u: f32) -> (usize, f32) {
+        let index = self.cdf.partition_point(|&c| c <= u).min(self.cdf.len() - 1);
+        let previous = if index == 0 { 0.0 } else { self.cdf[index - 1] };
+        (index, self.cdf[index] - previous)
+    }
+}
+
+/// The shared direct-light service over one scene's BVH.
+#[derive(Clone, Copy)]
+pub struct DirectLight<'a> {
+    pub scene: &'a Scene,
+    pub bvh: &'a Bvh,
+    pub emitters: &'a Emitters,
+    pub settings: DirectSettings,
+    /// Offset of shadow-ray origins along the normal, scaled to the scene.
+    pub ray_epsilon: f32,
+}
+
+/// Shadow-ray origin offset for a scene of this size: large enough to clear
+/// f32 rounding of hit points far from the origin, small against geometry.
+pub fn ray_epsilon_for(bvh: &Bvh) -> f32 {
+    let (lo, hi) = bvh.bounds();
+    let extent = (hi - lo).max_element().max(1e-3);
+    let magnitude = lo.abs().max(hi.abs()).max_element();
+    (extent * 2e-5).max(magnitude * 4e-6)
+}
+
+impl<'a> DirectLight<'a> {
+    /// `emitters` must come from [`Emitters::from_scene`] of the same scene;
+    /// it is built once per scene, while a service is cheap to create.
+    pub fn new(scene: &'a Scene, bvh: &'a Bvh, emitters: &'a Emitters, settings: DirectSettings) -> Self {
+        Self {
+            scene,
+            bvh,
+            emitters,
+            settings,
+            ray_epsilon: ray_epsilon_for(bvh),
+        }
+    }
+
+    /// Irradiance at `point` on the side `normal` faces, from `lights`, the
+    /// emissive triangles and the environment. `point_key` selects the sample
+    /// pattern (use a stable index such as the receiver or pixel number).
+    pub fn irradiance(&self, lights: &[Light], point: Vec3, normal: Vec3, point_key: u64) -> Rgb {
+        let origin = point + normal * self.ray_epsilon;
+        let mut irradiance = Rgb::ZERO;
+        for light in lights {
+            irradiance += self.punctual(light, origin, normal);
+        }
+        if !self.emitters.is_empty() && self.settings.area_light_samples > 0 {
+            irradiance += self.area_lights(origin, normal, point_key);
+        }
+        let environment = self.scene.environment.radiance;
+        if environment.max_element() > 0.0 && self.settings.environment_samples > 0 {
+            irradiance += self.environment(origin, normal, point_key, environment);
+        }
+        irradiance
+    }
+
+    /// Batch form over struct-of-arrays inputs; `keys` default to indices.
+    pub fn irradiance_batch(
+        &self,
+        lights: &[Light],
+        points: &[Vec3],
+        normals: &[Vec3],
+        irradiance: &mut [Rgb],
+    ) {
+        assert_eq!(points.len(), normals.len());
+        assert_eq!(points.len(), irradiance.len());
+        irradiance
+            .par_chunks_mut(256)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                let start = chunk * 256;
+                for (offset, value) in out.iter_mut().enumerate() {
+                    let index = start + offset;
+                    *value = self.irradiance(lights, points[index], normals[index], index as u64);
+                }
+            });
+    }
+
+    fn punctual(&self, light: &Light, origin: Vec3, normal: Vec3) -> Rgb {
+        match *light {
+            Light::Point {
+                position,
+                intensity,
+            } => self.from_point(origin, normal, position, intensity, 1.0),
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            } => {
+                let to_point = (origin - position).normalize_or_zero();
+                let falloff = spot_falloff(to_point.dot(direction.normalize_or_zero()), inner_angle, outer_angle);
+                if falloff <= 0.0 {
+                    return Rgb::ZERO;
+                }
+                self.from_point(origin, normal, position, intensity, falloff)
+            }
+            Light::Directional {
+                direction,
+                irradiance,
+            } => {
+                let toward_light = -direction.normalize_or_zero();
+                let cosine = normal.dot(toward_light);
+                if cosine <= 0.0 {
+                    return Rgb::ZERO;
+                }
+                let ray = Ray {
+                    origin,
+                    direction: toward_light,
+                    t_max: f32::INFINITY,
+                };
+                if self.bvh.occluded(&ray) {
+                    Rgb::ZERO
+                } else {
+                    irradiance * cosine
+                }
+            }
+        }
+    }
+
+    #[inline]
+    fn from_point(&self, origin: Vec3, normal: Vec3, position: Vec3, intensity: Rgb, scale: f32) -> Rgb {
+        let offset = position - origin;
+        let distance_squared = offset.length_squared();
+        let cosine = normal.dot(offset);
+        if cosine <= 0.0 || distance_squared <= 0.0 {
+            return Rgb::ZERO;
+        }
+        let ray = Ray {
+            origin,
+            direction: offset,
+            t_max: 1.0 - 1e-4,
+        };
+        if self.bvh.occluded(&ray) {
+            return Rgb::ZERO;
+        }
+        // E = I cos(theta) / d^2, with cos = n.offset / d.
+        intensity * (scale * cosine / (distance_squared * distance_squared.sqrt()))
+    }
+
+    fn area_lights(&self, origin: Vec3, normal: Vec3, point_key: u64) -> Rgb {
+        let samples = self.settings.area_light_samples;
+        let mut rng = SampleStream::new(self.settings.seed, point_key, 0xA4EA);
+        let mut sum = Rgb::ZERO;
+        for sample in 0..samples {
+            // Stratified in the power CDF: one sample per 1/samples interval.
+            let u = (sample as f32 + rng.next_f32()) / samples as f32;
+            let (index, probability) = self.emitters.pick(u.min(0.999_999_94));
+            let barycentric = relight_core::sampling::uniform_triangle(rng.next_vec2());
+            sum += self.emitter_sample(origin, normal, index, barycentric) / probability;
+        }
+        sum / samples as f32
+    }
+
+    /// Irradiance estimate of one point sample on emitter `index`, divided by
+    /// nothing but the area pdf (1 / area).
+    #[inline]
+    pub fn emitter_sample(&self, origin: Vec3, normal: Vec3, index: usize, barycentric: Vec2) -> Rgb {
+        let [a, b, c] = self.emitters.vertices[index];
+        let light_point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
+        let offset = light_point - origin;
+        let distance_squared = offset.length_squared();
+        let distance = distance_squared.sqrt();
+        if distance <= 0.0 {
+            return Rgb::ZERO;
+        }
+        let direction = offset / distance;
+        let cosine_receiver = normal.dot(direction);
+        // Emission only from the front face.
+        let cosine_emitter = -self.emitters.normals[index].dot(direction);
+        if cosine_receiver <= 0.0 || cosine_emitter <= 0.0 {
+            return Rgb::ZERO;
+        }
+        let ray = Ray {
+            origin,
+            direction: offset,
+            t_max: 1.0 - 1e-4,
+        };
+        if self.bvh.occluded(&ray) {
+            return Rgb::ZERO;
+        }
+        self.emitters.radiance[index]
+            * (cosine_receiver * cosine_emitter * self.emitters.areas[index] / distance_squared)
+    }
+
+    fn environment(&self, origin: Vec3, normal: Vec3, point_key: u64, radiance: Rgb) -> Rgb {
+        let samples = self.settings.environment_samples;
+        let mut rng = SampleStream::new(self.settings.seed, point_key, 0xE417);
+        let mut visible = 0u32;
+        for _ in 0..samples {
+            let direction = cosine_hemisphere_around(normal, rng.next_vec2());
+            let ray = Ray {
+                origin,
+                direction,
+                t_max: f32::INFINITY,
+            };
+            if !self.bvh.occluded(&ray) {
+                visible += 1;
+            }
+        }
+        // E = pi L V with V the cosine-weighted visible fraction.
+        radiance * (std::f32::consts::PI * visible as f32 / samples as f32)
+    }
+}
+
+/// Spot cone falloff: one inside `inner`, smoothstep to zero at `outer`
+/// (half-angles in radians), evaluated on the cosine of the angle.
+#[inline]
+pub fn spot_falloff(cosine: f32, inner: f32, outer: f32) -> f32 {
+    let cos_inner = inner.cos();
+    let cos_outer = outer.cos();
+    if cosine >= cos_inner {
+        return 1.0;
+    }
+    if cosine <= cos_outer || cos_inner <= cos_outer {
+        return 0.0;
+    }
+    let t = (cosine - cos_outer) / (cos_inner - cos_outer);
+    t * t * (3.0 - 2.0 * t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use relight_scene::{Environment, Material, Mesh};
+
+    /// A 2x2 m floor at y = 0 facing up, and optionally an emissive square
+    /// facing down at height `light_height`.
+    fn floor_scene(light: Option<(f32, f32, Rgb)>) -> Scene {
+        let mut positions = vec![
+            Vec3::new(-1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+            Vec3::new(-1.0, 0.0, 1.0),
+        ];
+        let mut triangles = vec![[0, 2, 1], [0, 3, 2]];
+        let mut material_ids = vec![0, 0];
+        let mut materials = vec![Material::default()];
+        if let Some((height, half_size, radiance)) = light {
+            let base = positions.len() as u32;
+            positions.extend([
+                Vec3::new(-half_size, height, -half_size),
+                Vec3::new(half_size, height, -half_size),
+                Vec3::new(half_size, height, half_size),
+                Vec3::new(-half_size, height, half_size),
+            ]);
+            // Counter-clockwise seen from below: normal -Y.
+            triangles.push([base, base + 1, base + 2]);
+            triangles.push([base, base + 2, base + 3]);
+            material_ids.extend([1, 1]);
+            materials.push(Material {
+                emission: radiance,
+                ..Material::default()
+            });
+        }
+        Scene {
+            mesh: Mesh {
+                positions,
+                triangles,
+                material_ids,
+                ..Default::default()
+            },
+            materials,
+            ..Default::default()
+        }
+    }
+
+    fn bvh_of(scene: &Scene) -> Bvh {
+        Bvh::build(&scene.mesh.positions, &scene.mesh.triangles)
+    }
+
+    #[test]
+    fn point_light_follows_inverse_square_cosine_law() {
+        let scene = floor_scene(None);
+        let bvh = bvh_of(&scene);
+        let emitters = Emitters::from_scene(&scene);
+        let service = DirectLight::new(&scene, &bvh, &emitters, DirectSettings::default());
+        let light = Light::Point {
+            position: Vec3::new(0.0, 2.0, 0.0),
+            intensity: Rgb::new(4.0, 2.0, 1.0),
+        };
+        for x in [0.0f32, 0.3, 0.7] {
+            let point = Vec3::new(x, 0.0, 0.0);
+            let distance_squared = 4.0 + x * x;
+            let cosine = 2.0 / distance_squared.sqrt();
+            let expected = Rgb::new(4.0, 2.0, 1.0) * cosine / distance_squared;
+            let got = service.irradiance(std::slice::from_ref(&light), point, Vec3::Y, 0);
+            assert!((got - expected).abs().max_element() < 1e-4 * expected.max_element(), "{got} vs {expected}");
+            // Below the floor the light is behind the surface.
+            let below = service.irradiance(std::slice::from_ref(&light), point, -Vec3::Y, 0);
+            assert_eq!(below, Rgb::ZERO);
+        }
+    }
+
+    #[test]
+    fn directional_light_is_shadowed_by_geometry() {
+        let scene = floor_scene(Some((1.0, 0.5, Rgb::ZERO)));
+        let bvh = bvh_of(&scene);
+        let emitters = Emitters::from_scene(&scene);
+        let service = DirectLight::new(&scene, &bvh, &emitters, DirectSettings::default());
+        let light = Light::Directional {
+            direction: Vec3::new(0.0, -1.0, 0.0),
+            irradiance: Rgb::splat(3.0),
+        };
+        // Under the (non-emissive) square: shadowed; outside it: lit.
+        let shadowed = service.irradiance(std::slice::from_ref(&light), Vec3::new(0.0, 0.0, 0.0), Vec3::Y, 0);
+        let lit = service.irradiance(std::slice::from_ref(&light), Vec3::new(0.9, 0.0, 0.9), Vec3::Y, 0);
+        assert_eq!(shadowed, Rgb::ZERO);
+        assert!((lit - Rgb::splat(3.0)).abs().max_element() < 1e-6);
+    }
+
+    #[test]
+    fn area_light_matches_analytic_square_form_factor() {
+        // Irradiance under the centre of a square emitter of half-size a at
+        // height h: E = L * 4 * [ a / sqrt(a^2 + h^2) * atan(a / sqrt(a^2 + h^2)) ]
+        // (the point-to-parallel-rectangle form factor, times pi L).
+        let (height, half_size, radiance) = (1.0f32, 0.5f32, Rgb::splat(2.0));
+        let scene = floor_scene(Some((height, half_size, radiance)));
+        let bvh = bvh_of(&scene);
+        let emitters = Emitters::from_scene(&scene);
+        let service = DirectLight::new(
+            &scene,
+            &bvh,
+            &emitters,
+            DirectSettings {
+                area_light_samples: 4096,
+                ..DirectSettings::default()
+            },
+        );
+        let mut sum = Rgb::ZERO;
+        let points = 32;
+        for key in 0..points {
+            sum += service.irradiance(&[], Vec3::new(0.0, 0.0, 0.0), Vec3::Y, key);
+        }
+        let estimate = sum / points as f32;
+        let s = (half_size * half_size + height * height).sqrt();
+        let expected = radiance.x * 4.0 * (half_size / s) * (half_size / s).atan();
+        // 131k stratified samples of a smooth integrand: well under 0.5% error.
+        assert!((estimate.x - expected).abs() < 5e-3 * expected, "{} vs {expected}", estimate.x);
+    }
+
+    #[test]
+    fn environment_irradiance_is_pi_radiance_when_unoccluded() {
+        let mut scene = floor_scene(None);
+        scene.environment = Environment {
+            radiance: Rgb::splat(0.5),
+        };
+        let bvh = bvh_of(&scene);
+        let emitters = Emitters::from_scene(&scene);
+        let service = DirectLight::new(&scene, &bvh, &emitters, DirectSettings::default());
+        let got = service.irradiance(&[], Vec3::new(0.0, 0.0, 0.0), Vec3::Y, 3);
+        assert!((got.x - std::f32::consts::PI * 0.5).abs() < 1e-5);
+    }
+
+    #[test]
+    fn spot_falloff_is_smooth_and_bounded() {
+        let inner = 20f32.to_radians();
+        let outer = 30f32.to_radians();
+        assert_eq!(spot_falloff(1.0, inner, outer), 1.0);
+        assert_eq!(spot_falloff(19f32.to_radians().cos(), inner, outer), 1.0);
+        assert_eq!(spot_falloff(31f32.to_radians().cos(), inner, outer), 0.0);
+        let middle = spot_falloff(25f32.to_radians().cos(), inner, outer);
+        assert!(middle > 0.3 && middle < 0.7, "{middle}");
+    }
+}
