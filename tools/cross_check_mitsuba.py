@@ -23,43 +23,62 @@ light):
   images are compared pixel for pixel without any flip;
 * relight's ``--max-bounces B`` (0 = direct light only) is Mitsuba's
   ``max_depth = B + 2`` (1 = emitters seen directly, 2 = direct light).
+  The default B is relight's own default, 64, so the check covers the
+  reference as the project uses it; there the last bounces carry almost no
+  energy, so run once more with ``--max-bounces 0`` (and 1) to check the
+  bounce mapping and the direct light on their own.
 
 Why the bound is what it is
 ---------------------------
 Both renderers are unbiased Monte Carlo estimators of the same image, so the
-difference of two renders is zero-mean noise plus any systematic disagreement,
-and its expected squared norm is ``Var(relight) + Var(Mitsuba) + bias^2``.
-The script measures the noise instead of guessing it: it renders Mitsuba twice
-with different seeds; the relative RMSE between those two renders is the
-pure-noise relRMSE of two independent renders at this sample count (the
-"noise floor").  If relight's per-pixel variance equals Mitsuba's, the
-relight-vs-Mitsuba relRMSE has the same expectation, so the bound is
+difference of two renders is zero-mean noise plus any systematic disagreement
+``b``: ``E|R - M|^2 = Var(R) + Var(M) + |b|^2``.  The script measures the
+noise instead of guessing it.  It renders relight twice (seeds 1 and 2) and
+Mitsuba twice (seeds 0 and 1); two renders of one renderer differ by pure noise,
+``E|X1 - X2|^2 = 2 Var(X)``, so the relRMSE expected from noise alone between
+one relight and one Mitsuba render (the "noise floor") is
+
+    noise_floor = sqrt((relRMSE(R1, R2)^2 + relRMSE(M0, M1)^2) / 2)
+
+and relight's first render is compared with Mitsuba's first against
 
     bound = noise_floor * NOISE_FACTOR + SYSTEMATIC_ALLOWANCE
 
-with NOISE_FACTOR = 1.5 (it tolerates relight having up to 1.5^2 * 2 - 1 =
-3.5 times Mitsuba's variance, e.g. a different light-sampling strategy, and
-the sampling fluctuation of the estimate itself, which is far smaller at
-tens of thousands of pixels) and SYSTEMATIC_ALLOWANCE = 0.02 (ray-offset
-differences at the box's corners and float rounding; no spectral difference
-is expected in ``scalar_rgb``).
+NOISE_FACTOR = 1.5 covers the sampling fluctuation of both the noise floor
+and the compared relRMSE (each from one pair of images: on the Cornell box
+the block-averaged pair values vary by up to a factor of two between seeds).
+SYSTEMATIC_ALLOWANCE = 0.02 covers legitimate differences: ray offsets at
+the box's corners and float rounding (``scalar_rgb`` is plain RGB, so no
+spectral difference is expected).  With ``--relight-image`` there is only
+one relight render and relight's variance is taken to equal Mitsuba's.
 
-At the full resolution the noise dominates: a uniform 10 % error adds only in
-quadrature to a noise floor of ~0.2 and could hide under the bound.  So the
-same comparison is also made after averaging BLOCK x BLOCK pixel blocks
-(default 8 x 8).  Averaging divides the noise relRMSE by about BLOCK while a
-systematic difference (wrong light units, an off-by-one bounce count, a
-mirrored image, a wrong field of view, emission from the wrong side) stays
-the same size, so at that scale the 0.02 allowance dominates the bound and a
-few-percent bias fails.  The check passes only when both comparisons are
-within their bounds.
+relRMSE is an L2 norm, so the brightest pixels dominate it: in the area-lit
+Cornell box the directly seen light (radiance ~12.6 over ~560 pixels) holds
+99 % of the image's squared norm, and a relight rendering one bounce too many
+at ``--max-bounces 0`` (16 % brighter walls) still passed a full-image check.  So three views of the
+images are compared, each with its own measured noise floor and bound, and
+all three must pass:
 
-Exit status: 0 = agree, 1 = relRMSE above a bound, 2 = usage or input error.
+* "full image": every pixel (the comparison the project defines; it checks
+  the emitters' size, position and radiance as seen by the camera);
+* "lit surfaces": pixels that see emission directly (found with a Mitsuba
+  ``max_depth = 1`` render, dilated by one pixel) are set to zero in all
+  images, leaving the direct and indirect light on the surfaces;
+* "surfaces BxB": the lit surfaces averaged over BLOCK x BLOCK tiles
+  (default 8 x 8).  Averaging divides the noise relRMSE by about BLOCK
+  while a systematic difference (wrong light units, an off-by-one bounce
+  count, a mirrored image, a wrong field of view, emission from the wrong
+  side) keeps its size, so here the 0.02 allowance dominates the bound: at
+  the default 128 spp a uniform 5 % error fails, which the per-pixel views
+  alone would let through.
+
+Exit status: 0 = agree, 1 = a relRMSE above its bound, 2 = usage or input
+error (including relight failing to run).
 
 Usage:
     python tools/cross_check_mitsuba.py scenes/cornell-box/scene.toml \\
-        [--relight target/release/relight] [--spp 64] [--max-bounces 4] \\
-        [--out out/cross-check] [--bound X] [--coarse-bound X]
+        [--relight target/release/relight] [--spp 128] [--max-bounces 64] \\
+        [--out out/cross-check] [--bound X] [--surface-bound X] [--block-bound X]
 
 Requires only ``mitsuba==3.9.1`` and ``numpy`` (Python >= 3.11 for tomllib).
 """
@@ -68,7 +87,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import shutil
 import subprocess
 import sys
@@ -81,11 +99,14 @@ import numpy as np
 
 NOISE_FACTOR = 1.5
 SYSTEMATIC_ALLOWANCE = 0.02
-DEFAULT_SPP = 64
-DEFAULT_MAX_BOUNCES = 4
+DEFAULT_SPP = 128
+# relight's own default for `relight render --max-bounces`.
+DEFAULT_MAX_BOUNCES = 64
 DEFAULT_BLOCK = 8
-MITSUBA_SEED_REFERENCE = 0
-MITSUBA_SEED_NOISE = 1
+# The first seed of each pair renders the compared image; the second measures the noise.
+MITSUBA_SEEDS = (0, 1)
+RELIGHT_SEEDS = (1, 2)
+EMITTER_MASK_SPP = 16
 # relight's Material::default(), used for faces without a (known) material.
 DEFAULT_ALBEDO = (0.5, 0.5, 0.5)
 # relight's defaults for the optional [camera] keys (eye, target and fov_y are required).
@@ -444,16 +465,17 @@ def build_material_mesh(mitsuba, scene: SceneDescription, material_name: str):
     return mesh
 
 
-def build_mitsuba_scene(mitsuba, scene: SceneDescription, spp: int, max_bounces: int):
+def mitsuba_max_depth(relight_max_bounces: int) -> int:
+    """relight counts indirect bounces (0 = direct light only); Mitsuba counts
+    path segments (1 = emitters seen directly, 2 = direct light)."""
+    return relight_max_bounces + 2
+
+
+def build_mitsuba_scene(mitsuba, scene: SceneDescription, spp: int, max_depth: int):
     camera = scene.camera
     scene_dictionary = {
         "type": "scene",
-        "integrator": {
-            "type": "path",
-            # relight max_bounces 0 = direct light = Mitsuba max_depth 2.
-            "max_depth": max_bounces + 2,
-            "hide_emitters": False,
-        },
+        "integrator": {"type": "path", "max_depth": max_depth, "hide_emitters": False},
         "sensor": {
             "type": "perspective",
             "fov_axis": "y",
@@ -529,12 +551,13 @@ def find_relight_binary(requested: str | None) -> str:
     )
 
 
-def run_relight(relight_binary: str, scene_path: Path, spp: int, max_bounces: int, output_path: Path) -> None:
+def run_relight(relight_binary: str, scene_path: Path, spp: int, max_bounces: int, seed: int, output_path: Path) -> None:
     command = [
         relight_binary, "render", str(scene_path),
         "--technique", "reference",
         "--spp", str(spp),
         "--max-bounces", str(max_bounces),
+        "--seed", str(seed),
         "-o", str(output_path),
         "--quiet",
     ]
@@ -601,18 +624,38 @@ def signed_false_colour(difference: np.ndarray, full_scale: float) -> np.ndarray
     return np.clip(colour, 0.0, 1.0)
 
 
-def write_difference_images(mitsuba, relight_image, mitsuba_image, block: int, output_directory: Path) -> list[Path]:
-    mean_luminance = float(luminance(mitsuba_image).mean())
+def emitter_mask(mitsuba, scene: SceneDescription) -> np.ndarray:
+    """Pixels that see emission directly (emissive triangles or the environment),
+    dilated by one pixel so that partly covered edge pixels are included."""
+    emission_scene = build_mitsuba_scene(mitsuba, scene, EMITTER_MASK_SPP, 1)
+    emission = render_mitsuba(mitsuba, emission_scene, EMITTER_MASK_SPP, MITSUBA_SEEDS[0])
+    seen = np.any(emission > 0.0, axis=2)
+    padded = np.pad(seen, 1)
+    dilated = np.zeros_like(seen)
+    for row_shift in (0, 1, 2):
+        for column_shift in (0, 1, 2):
+            dilated |= padded[row_shift:row_shift + seen.shape[0], column_shift:column_shift + seen.shape[1]]
+    return dilated
+
+
+def write_difference_images(
+    mitsuba, relight_image, mitsuba_image, surface_mask, block: int, output_directory: Path
+) -> list[Path]:
+    mean_luminance = float(luminance(mitsuba_image[surface_mask]).mean()) if surface_mask.any() else 0.0
     scale = mean_luminance if mean_luminance > 0.0 else 1.0
     absolute_path = output_directory / "difference_abs.png"
-    # |relight - Mitsuba| per pixel, 1.0 (white) = the image's mean luminance.
+    # |relight - Mitsuba| per pixel; 1.0 (white) = the lit surfaces' mean luminance.
     write_png(mitsuba, np.abs(relight_image - mitsuba_image) / scale, absolute_path)
-    coarse_difference = luminance(block_average(relight_image, block)) - luminance(block_average(mitsuba_image, block))
-    false_colour = signed_false_colour(coarse_difference, 0.1 * scale)
+    # Signed block-averaged difference on the lit surfaces (emitters blacked
+    # out), where systematic errors show as coherent red or blue regions.
+    masked_relight = relight_image * surface_mask[..., None]
+    masked_mitsuba = mitsuba_image * surface_mask[..., None]
+    block_difference = luminance(block_average(masked_relight, block)) - luminance(block_average(masked_mitsuba, block))
+    false_colour = signed_false_colour(block_difference, 0.1 * scale)
     false_colour = np.repeat(np.repeat(false_colour, block, axis=0), block, axis=1)
-    coarse_path = output_directory / "difference_blocks.png"
-    write_png(mitsuba, false_colour, coarse_path)
-    return [absolute_path, coarse_path]
+    blocks_path = output_directory / "difference_blocks.png"
+    write_png(mitsuba, false_colour, blocks_path)
+    return [absolute_path, blocks_path]
 
 
 def format_rgb(image: np.ndarray) -> str:
@@ -627,8 +670,11 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
             "(scalar_rgb) and compare the images by relative RMSE against a bound derived "
             "from the measured Monte Carlo noise. Exit 0 = agree, 1 = disagree, 2 = usage/input error."
         ),
-        epilog="The bound is noise_floor * %.1f + %.2f, where noise_floor is the relRMSE between two "
-        "Mitsuba renders with different seeds; see the module docstring." % (NOISE_FACTOR, SYSTEMATIC_ALLOWANCE),
+        epilog="Three comparisons must each stay within their bound: the full image; the lit surfaces "
+        "(pixels that see an emitter directly masked out); the lit surfaces averaged over BLOCK x BLOCK "
+        "tiles. Each bound is noise_floor * %.1f + %.2f, where noise_floor is the relRMSE expected from "
+        "Monte Carlo noise alone, measured from two renders of each renderer with different seeds; see "
+        "the module docstring." % (NOISE_FACTOR, SYSTEMATIC_ALLOWANCE),
     )
     parser.add_argument("scene", type=Path, help="relight scene file (TOML) whose mesh is an OBJ/MTL file")
     parser.add_argument(
@@ -646,11 +692,12 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
         help=f"relight's bounce count, 0 = direct light only (default {DEFAULT_MAX_BOUNCES}); Mitsuba gets max_depth = this + 2",
     )
     parser.add_argument("--out", type=Path, default=REPOSITORY_ROOT / "out" / "cross-check", help="output directory for images (default out/cross-check)")
-    parser.add_argument("--bound", type=float, help="override the full-resolution relRMSE bound")
-    parser.add_argument("--coarse-bound", type=float, help="override the block-averaged relRMSE bound")
+    parser.add_argument("--bound", type=float, help="override the full-image relRMSE bound")
+    parser.add_argument("--surface-bound", type=float, help="override the lit-surfaces relRMSE bound")
+    parser.add_argument("--block-bound", type=float, help="override the block-averaged lit-surfaces relRMSE bound")
     parser.add_argument(
         "--block", type=int, default=DEFAULT_BLOCK,
-        help=f"block size in pixels for the block-averaged comparison (default {DEFAULT_BLOCK})",
+        help=f"tile size in pixels for the block-averaged comparison (default {DEFAULT_BLOCK})",
     )
     arguments = parser.parse_args(argv)
     if arguments.spp < 1:
@@ -659,11 +706,81 @@ def parse_arguments(argv: list[str]) -> argparse.Namespace:
         parser.error("--max-bounces must be non-negative")
     if arguments.block < 1:
         parser.error("--block must be at least 1")
-    for name in ("bound", "coarse_bound"):
+    for name in ("bound", "surface_bound", "block_bound"):
         value = getattr(arguments, name)
         if value is not None and not value > 0.0:
             parser.error(f"--{name.replace('_', '-')} must be positive")
     return arguments
+
+
+@dataclass
+class Comparison:
+    """relRMSE of relight against Mitsuba on one view of the images, with its noise floor and bound."""
+    label: str
+    noise_floor: float
+    bound: float
+    bound_source: str
+    error: float
+
+    @property
+    def passed(self) -> bool:
+        return self.error <= self.bound
+
+
+def expected_noise_relative_rmse(mitsuba_pair, relight_pair) -> float:
+    """Pure-noise relRMSE expected between one relight and one Mitsuba render.
+
+    E|R - M|^2 = Var_R + Var_M, and two renders of one renderer with different
+    seeds have E|X1 - X2|^2 = 2 Var_X, so the expected squared relRMSE of
+    relight against Mitsuba is the mean of the two within-renderer squared
+    relRMSEs. Without a second relight render, relight's variance is taken to
+    equal Mitsuba's.
+    """
+    mitsuba_noise = relative_rmse(mitsuba_pair[1], mitsuba_pair[0])
+    if relight_pair is None:
+        return mitsuba_noise
+    relight_noise = relative_rmse(relight_pair[1], relight_pair[0])
+    return math.sqrt(0.5 * (mitsuba_noise**2 + relight_noise**2))
+
+
+def compare(label, relight_images, mitsuba_images, given_bound, has_relight_pair) -> Comparison:
+    noise_floor = expected_noise_relative_rmse(mitsuba_images, relight_images if has_relight_pair else None)
+    if given_bound is not None:
+        bound, bound_source = given_bound, "given"
+    else:
+        bound = noise_floor * NOISE_FACTOR + SYSTEMATIC_ALLOWANCE
+        bound_source = f"noise * {NOISE_FACTOR} + {SYSTEMATIC_ALLOWANCE}"
+    return Comparison(
+        label=label,
+        noise_floor=noise_floor,
+        bound=bound,
+        bound_source=bound_source,
+        error=relative_rmse(relight_images[0], mitsuba_images[0]),
+    )
+
+
+def load_relight_images(mitsuba, arguments, scene: SceneDescription, output_directory: Path) -> list[np.ndarray]:
+    """relight's render(s): two seeds normally, one when --relight-image is given."""
+    if arguments.relight_image is not None:
+        paths = [arguments.relight_image]
+    else:
+        relight_binary = find_relight_binary(arguments.relight)
+        paths = []
+        for seed in RELIGHT_SEEDS:
+            path = output_directory / ("relight.exr" if seed == RELIGHT_SEEDS[0] else f"relight_seed{seed}.exr")
+            run_relight(relight_binary, arguments.scene, arguments.spp, arguments.max_bounces, seed, path)
+            paths.append(path)
+    images = []
+    camera = scene.camera
+    for path in paths:
+        image = read_exr_rgb(mitsuba, path)
+        if image.shape[:2] != (camera.height, camera.width):
+            raise InputError(
+                f"relight image {path} is {image.shape[1]}x{image.shape[0]}, "
+                f"the scene asks for {camera.width}x{camera.height}"
+            )
+        images.append(image)
+    return images
 
 
 def cross_check(arguments: argparse.Namespace) -> int:
@@ -675,73 +792,81 @@ def cross_check(arguments: argparse.Namespace) -> int:
     output_directory = arguments.out
     output_directory.mkdir(parents=True, exist_ok=True)
     camera = scene.camera
-    if arguments.block > min(camera.width, camera.height):
-        raise InputError(f"--block {arguments.block} is larger than the image")
+    block = arguments.block
+    if block > min(camera.width, camera.height):
+        raise InputError(f"--block {block} is larger than the image")
     print(
         f"scene {scene.source}: {camera.width}x{camera.height}, "
         f"{sum(len(triangles) for triangles in scene.triangles_by_material.values())} triangles, "
         f"{len(scene.triangles_by_material)} materials, {len(scene.lights)} lights; "
-        f"spp {arguments.spp}, max bounces {arguments.max_bounces} (Mitsuba max_depth {arguments.max_bounces + 2})"
+        f"spp {arguments.spp}, max bounces {arguments.max_bounces} "
+        f"(Mitsuba max_depth {mitsuba_max_depth(arguments.max_bounces)})",
+        flush=True,
     )
 
-    relight_path = output_directory / "relight.exr"
     stage_started = time.monotonic()
-    if arguments.relight_image is not None:
-        relight_path = arguments.relight_image
-    else:
-        run_relight(find_relight_binary(arguments.relight), arguments.scene, arguments.spp, arguments.max_bounces, relight_path)
-    relight_image = read_exr_rgb(mitsuba, relight_path)
+    relight_images = load_relight_images(mitsuba, arguments, scene, output_directory)
     relight_seconds = time.monotonic() - stage_started
-    if relight_image.shape[:2] != (camera.height, camera.width):
-        raise InputError(
-            f"relight image is {relight_image.shape[1]}x{relight_image.shape[0]}, "
-            f"scene asks for {camera.width}x{camera.height}"
-        )
-    if not np.all(np.isfinite(relight_image)):
-        print("relight image contains non-finite pixels", file=sys.stderr)
+    if not all(np.all(np.isfinite(image)) for image in relight_images):
+        print("FAIL: relight's image contains non-finite pixels", file=sys.stderr)
         return 1
 
     stage_started = time.monotonic()
-    mitsuba_scene = build_mitsuba_scene(mitsuba, scene, arguments.spp, arguments.max_bounces)
-    mitsuba_image = render_mitsuba(mitsuba, mitsuba_scene, arguments.spp, MITSUBA_SEED_REFERENCE)
-    mitsuba_noise_image = render_mitsuba(mitsuba, mitsuba_scene, arguments.spp, MITSUBA_SEED_NOISE)
+    mitsuba_scene = build_mitsuba_scene(mitsuba, scene, arguments.spp, mitsuba_max_depth(arguments.max_bounces))
+    mitsuba_images = [render_mitsuba(mitsuba, mitsuba_scene, arguments.spp, seed) for seed in MITSUBA_SEEDS]
+    surface_mask = ~emitter_mask(mitsuba, scene)
     mitsuba_seconds = time.monotonic() - stage_started
 
-    write_exr(mitsuba, mitsuba_image, output_directory / "mitsuba.exr")
-    write_exr(mitsuba, mitsuba_noise_image, output_directory / "mitsuba_seed1.exr")
-    write_png(mitsuba, mitsuba_image, output_directory / "mitsuba.png")
-    write_png(mitsuba, relight_image, output_directory / "relight.png")
-    difference_paths = write_difference_images(mitsuba, relight_image, mitsuba_image, arguments.block, output_directory)
-
-    noise_floor = relative_rmse(mitsuba_noise_image, mitsuba_image)
-    error = relative_rmse(relight_image, mitsuba_image)
-    bound = arguments.bound if arguments.bound is not None else noise_floor * NOISE_FACTOR + SYSTEMATIC_ALLOWANCE
-    block = arguments.block
-    coarse_noise_floor = relative_rmse(block_average(mitsuba_noise_image, block), block_average(mitsuba_image, block))
-    coarse_error = relative_rmse(block_average(relight_image, block), block_average(mitsuba_image, block))
-    coarse_bound = (
-        arguments.coarse_bound if arguments.coarse_bound is not None
-        else coarse_noise_floor * NOISE_FACTOR + SYSTEMATIC_ALLOWANCE
+    write_exr(mitsuba, mitsuba_images[0], output_directory / "mitsuba.exr")
+    write_exr(mitsuba, mitsuba_images[1], output_directory / f"mitsuba_seed{MITSUBA_SEEDS[1]}.exr")
+    write_png(mitsuba, mitsuba_images[0], output_directory / "mitsuba.png")
+    write_png(mitsuba, relight_images[0], output_directory / "relight.png")
+    difference_paths = write_difference_images(
+        mitsuba, relight_images[0], mitsuba_images[0], surface_mask, block, output_directory
     )
-    passed = error <= bound and coarse_error <= coarse_bound
 
-    relight_mean = relight_image.reshape(-1, 3).mean(axis=0)
-    mitsuba_mean = mitsuba_image.reshape(-1, 3).mean(axis=0)
+    has_relight_pair = len(relight_images) == 2
+    relight_surfaces = [image * surface_mask[..., None] for image in relight_images]
+    mitsuba_surfaces = [image * surface_mask[..., None] for image in mitsuba_images]
+    comparisons = [
+        compare("full image", relight_images, mitsuba_images, arguments.bound, has_relight_pair),
+        compare("lit surfaces", relight_surfaces, mitsuba_surfaces, arguments.surface_bound, has_relight_pair),
+        compare(
+            f"surfaces {block}x{block}",
+            [block_average(image, block) for image in relight_surfaces],
+            [block_average(image, block) for image in mitsuba_surfaces],
+            arguments.block_bound,
+            has_relight_pair,
+        ),
+    ]
+    passed = all(comparison.passed for comparison in comparisons)
+
+    relight_mean = relight_images[0].reshape(-1, 3).mean(axis=0)
+    mitsuba_mean = mitsuba_images[0].reshape(-1, 3).mean(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         mean_ratio = relight_mean / mitsuba_mean
-    bound_source = "given" if arguments.bound is not None else f"noise * {NOISE_FACTOR} + {SYSTEMATIC_ALLOWANCE}"
-    coarse_source = "given" if arguments.coarse_bound is not None else f"noise * {NOISE_FACTOR} + {SYSTEMATIC_ALLOWANCE}"
-    print(f"relight mean RGB  {format_rgb(relight_image)}   ({relight_seconds:.1f} s)")
-    print(f"Mitsuba mean RGB  {format_rgb(mitsuba_image)}   ({mitsuba_seconds:.1f} s for 2 renders)")
+    print(f"relight mean RGB  {format_rgb(relight_images[0])}   ({relight_seconds:.1f} s for {len(relight_images)} render(s))")
+    print(f"Mitsuba mean RGB  {format_rgb(mitsuba_images[0])}   ({mitsuba_seconds:.1f} s for 2 renders)")
     print(f"mean ratio relight/Mitsuba  ({mean_ratio[0]:.4f}, {mean_ratio[1]:.4f}, {mean_ratio[2]:.4f})")
-    print(f"full image:      noise floor {noise_floor:.4f}  bound {bound:.4f} ({bound_source})  relRMSE {error:.4f}")
-    print(
-        f"{block}x{block} blocks:    noise floor {coarse_noise_floor:.4f}  bound {coarse_bound:.4f} "
-        f"({coarse_source})  relRMSE {coarse_error:.4f}"
+    noise_source = (
+        "noise floor = expected relRMSE of independent renders, from relight's and Mitsuba's seed pairs"
+        if has_relight_pair
+        else "noise floor = relRMSE of Mitsuba's seed pair (relight's variance assumed equal)"
     )
+    print(noise_source)
+    masked_count = int(surface_mask.size - surface_mask.sum())
+    print(f"lit surfaces = all pixels but the {masked_count} that see emission directly (dilated by 1 pixel)")
+    for comparison in comparisons:
+        print(
+            f"{comparison.label:>14}: noise floor {comparison.noise_floor:.4f}  bound {comparison.bound:.4f} "
+            f"({comparison.bound_source})  relRMSE {comparison.error:.4f}  "
+            f"{'ok' if comparison.passed else 'ABOVE BOUND'}"
+        )
     print(f"images in {output_directory}: relight.exr, mitsuba.exr, " + ", ".join(path.name for path in difference_paths))
-    print(f"{'PASS' if passed else 'FAIL'}: relight {'agrees' if passed else 'disagrees'} with Mitsuba "
-          f"(total {time.monotonic() - started:.1f} s)")
+    print(
+        f"{'PASS' if passed else 'FAIL'}: relight {'agrees' if passed else 'disagrees'} with Mitsuba "
+        f"(total {time.monotonic() - started:.1f} s)"
+    )
     return 0 if passed else 1
 
 

@@ -42,15 +42,33 @@ pub fn orbit(lights: &[Light], centre: Vec3, index: u32, frames: u32) -> Vec<Lig
     lights
         .iter()
         .map(|light| match light.clone() {
-            Light::Point { position, intensity } => Light::Point { position: around(position), intensity },
-            Light::Spot { position, direction, intensity, inner_angle, outer_angle } => Light::Spot {
+            Light::Point {
+                position,
+                intensity,
+            } => Light::Point {
+                position: around(position),
+                intensity,
+            },
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            } => Light::Spot {
                 position: around(position),
                 direction: rotation * direction,
                 intensity,
                 inner_angle,
                 outer_angle,
             },
-            Light::Directional { direction, irradiance } => Light::Directional { direction: rotation * direction, irradiance },
+            Light::Directional {
+                direction,
+                irradiance,
+            } => Light::Directional {
+                direction: rotation * direction,
+                irradiance,
+            },
         })
         .collect()
 }
@@ -65,10 +83,19 @@ fn percentile(sorted: &[f64], fraction: f64) -> f64 {
 
 fn stage_report(stage: &str, mut samples: Vec<f64>) -> StageReport {
     samples.sort_by(|a, b| a.total_cmp(b));
-    StageReport { stage: stage.to_string(), median_ms: percentile(&samples, 0.5), p95_ms: percentile(&samples, 0.95) }
+    StageReport {
+        stage: stage.to_string(),
+        median_ms: percentile(&samples, 0.5),
+        p95_ms: percentile(&samples, 0.95),
+    }
 }
 
-pub fn run(context: &SceneContext, technique: &mut dyn Technique, frames: u32, progress: &dyn Progress) -> Result<BenchReport> {
+pub fn run(
+    context: &SceneContext,
+    technique: &mut dyn Technique,
+    frames: u32,
+    progress: &dyn Progress,
+) -> Result<BenchReport> {
     let frames = frames.max(1);
     let (lo, hi) = context.scene.mesh.bounds();
     let centre = (lo + hi) * 0.5;
@@ -79,7 +106,10 @@ pub fn run(context: &SceneContext, technique: &mut dyn Technique, frames: u32, p
     progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
         let lights = orbit(base, centre, index, frames);
-        technique.update(&Frame { lights: &lights, index: index as u64 })?;
+        technique.update(&Frame {
+            lights: &lights,
+            index: index as u64,
+        })?;
         progress.advance(1);
         if index < WARM_UP_FRAMES {
             continue;
@@ -99,14 +129,22 @@ pub fn run(context: &SceneContext, technique: &mut dyn Technique, frames: u32, p
         totals.push(timings.total().as_secs_f64() * 1e3);
     }
     progress.finish();
-    let memory: Vec<(String, usize)> = technique.memory().into_iter().map(|entry| (entry.buffer, entry.bytes)).collect();
+    let memory: Vec<(String, usize)> = technique
+        .memory()
+        .into_iter()
+        .map(|entry| (entry.buffer, entry.bytes))
+        .collect();
     Ok(BenchReport {
         technique: technique.name().to_string(),
         scene: context.scene.source.display().to_string(),
         frames,
         threads: rayon::current_num_threads(),
         receivers: context.atlas.receivers.len(),
-        stages: stage_names.iter().zip(stage_samples).map(|(name, samples)| stage_report(name, samples)).collect(),
+        stages: stage_names
+            .iter()
+            .zip(stage_samples)
+            .map(|(name, samples)| stage_report(name, samples))
+            .collect(),
         total: stage_report("total", totals),
         memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
         memory,
@@ -115,10 +153,18 @@ pub fn run(context: &SceneContext, technique: &mut dyn Technique, frames: u32, p
 
 impl fmt::Display for BenchReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        writeln!(f, "{} on {}: {} frames, {} threads, {} receivers", self.technique, self.scene, self.frames, self.threads, self.receivers)?;
+        writeln!(
+            f,
+            "{} on {}: {} frames, {} threads, {} receivers",
+            self.technique, self.scene, self.frames, self.threads, self.receivers
+        )?;
         writeln!(f, "{:<28} {:>12} {:>12}", "stage", "median ms", "p95 ms")?;
         for stage in self.stages.iter().chain(std::iter::once(&self.total)) {
-            writeln!(f, "{:<28} {:>12.3} {:>12.3}", stage.stage, stage.median_ms, stage.p95_ms)?;
+            writeln!(
+                f,
+                "{:<28} {:>12.3} {:>12.3}",
+                stage.stage, stage.median_ms, stage.p95_ms
+            )?;
         }
         writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;
         for (buffer, bytes) in &self.memory {
@@ -142,9 +188,24 @@ pub fn rays(scene_path: &Path, rays: usize, repeats: usize, quiet: bool) -> Resu
             Light::Point { position, .. } | Light::Spot { position, .. } => Some(*position),
             Light::Directional { .. } => None,
         })
-        .unwrap_or(Vec3::new((lo.x + hi.x) * 0.5, lo.y + (hi.y - lo.y) * 0.9, (lo.z + hi.z) * 0.5));
-    let report = relight_trace::raybench::run(&scene.mesh.positions, &scene.mesh.triangles, light_position, rays, repeats, 1);
-    println!("{} triangles, {} threads", scene.mesh.triangles.len(), rayon::current_num_threads());
+        .unwrap_or(Vec3::new(
+            (lo.x + hi.x) * 0.5,
+            lo.y + (hi.y - lo.y) * 0.9,
+            (lo.z + hi.z) * 0.5,
+        ));
+    let report = relight_trace::raybench::run(
+        &scene.mesh.positions,
+        &scene.mesh.triangles,
+        light_position,
+        rays,
+        repeats,
+        1,
+    );
+    println!(
+        "{} triangles, {} threads",
+        scene.mesh.triangles.len(),
+        rayon::current_num_threads()
+    );
     println!("{report}");
     Ok(())
 }

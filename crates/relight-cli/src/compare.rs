@@ -5,7 +5,7 @@ use crate::progress::Bars;
 use crate::techniques;
 use anyhow::{bail, Context, Result};
 use relight_core::Rgb;
-use relight_render::metrics::{error_image, error_norms, ErrorNorms};
+use relight_render::metrics::{error_image, error_norms, relative_noise, ErrorNorms};
 use relight_render::render::{render_reference, render_with_technique};
 use relight_technique::{reference_receiver_irradiance, Frame, SceneContext};
 use relight_trace::path::PathSettings;
@@ -22,7 +22,7 @@ pub struct CompareSettings {
     #[arg(long, default_value_t = 64)]
     pub reference_spp: u32,
     /// Paths per receiver for the reference lightmap.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 1024)]
     pub reference_samples: u32,
     /// Indirect bounces of the reference: 0 = direct only.
     #[arg(long, default_value_t = 64)]
@@ -44,57 +44,121 @@ struct Row {
 
 /// Compares `names` against the reference on one scene; writes images and
 /// `report.md` into `output`; returns the Markdown table.
-pub fn run(context: &std::sync::Arc<SceneContext>, scene_path: &Path, names: &[String], settings: &CompareSettings, output: &Path, quiet: bool) -> Result<String> {
-    std::fs::create_dir_all(output).with_context(|| format!("{}: cannot create output folder", output.display()))?;
-    let kinds = names.iter().map(|name| techniques::find(name.trim())).collect::<Result<Vec<_>>>()?;
+pub fn run(
+    context: &std::sync::Arc<SceneContext>,
+    scene_path: &Path,
+    names: &[String],
+    settings: &CompareSettings,
+    output: &Path,
+    quiet: bool,
+) -> Result<String> {
+    std::fs::create_dir_all(output)
+        .with_context(|| format!("{}: cannot create output folder", output.display()))?;
+    let kinds = names
+        .iter()
+        .map(|name| techniques::find(name.trim()))
+        .collect::<Result<Vec<_>>>()?;
     if kinds.iter().any(|kind| kind.name() == "reference") {
         bail!("--techniques: 'reference' is what the others are compared with; leave it out");
     }
     let bars = Bars::new(quiet);
     let lights = context.scene.lights.clone();
-    let path_settings = PathSettings { max_bounces: settings.max_bounces, seed: settings.seed, ..PathSettings::default() };
+    let path_settings = PathSettings {
+        max_bounces: settings.max_bounces,
+        seed: settings.seed,
+        ..PathSettings::default()
+    };
 
     let start = Instant::now();
-    let reference_lightmap = reference_receiver_irradiance(context, &lights, path_settings, settings.reference_samples, &bars);
+    let reference_lightmap = reference_receiver_irradiance(
+        context,
+        &lights,
+        path_settings,
+        settings.reference_samples,
+        &bars,
+    );
     let reference_lightmap_seconds = start.elapsed().as_secs_f64();
     let start = Instant::now();
-    let reference = render_reference(context, &lights, path_settings, settings.reference_spp, &bars);
+    let reference = render_reference(
+        context,
+        &lights,
+        path_settings,
+        settings.reference_spp,
+        &bars,
+    );
     let reference_image_seconds = start.elapsed().as_secs_f64();
     let indirect_exposure = reference.indirect.auto_exposure();
     let full_exposure = reference.full.auto_exposure();
-    reference.indirect.write(&output.join("reference-indirect.png"), Some(indirect_exposure))?;
-    reference.indirect.write(&output.join("reference-indirect.exr"), None)?;
-    reference.full.write(&output.join("reference-full.png"), Some(full_exposure))?;
-    reference.full.write(&output.join("reference-full.exr"), None)?;
-    // The reference's own noise: standard error over the lightmap's norm.
-    let noise = {
-        let squared: f64 = reference_lightmap.standard_error.iter().map(|e| (e.length_squared()) as f64).sum();
-        let total: f64 = reference_lightmap.mean.iter().map(|m| (m.length_squared()) as f64).sum();
-        if total > 0.0 { (squared / total).sqrt() } else { 0.0 }
-    };
+    reference.indirect.write(
+        &output.join("reference-indirect.png"),
+        Some(indirect_exposure),
+    )?;
+    reference
+        .indirect
+        .write(&output.join("reference-indirect.exr"), None)?;
+    reference
+        .full
+        .write(&output.join("reference-full.png"), Some(full_exposure))?;
+    reference
+        .full
+        .write(&output.join("reference-full.exr"), None)?;
+    let lightmap_noise =
+        relative_noise(&reference_lightmap.mean, &reference_lightmap.standard_error);
+    let image_noise = relative_noise(
+        &reference.indirect.pixels,
+        &reference.indirect_standard_error.pixels,
+    );
 
     let mut rows = Vec::new();
     for kind in kinds {
-        let options = crate::TechniqueOptions { technique: kind.name().to_string(), bake: None, set: Vec::new() };
+        let options = crate::TechniqueOptions {
+            technique: kind.name().to_string(),
+            bake: None,
+            set: Vec::new(),
+        };
         let mut technique = crate::create_technique(context, &options, quiet)?;
         let mut update_ms = Vec::new();
         for index in 0..settings.timing_frames.max(1) {
-            technique.update(&Frame { lights: &lights, index: index as u64 })?;
+            technique.update(&Frame {
+                lights: &lights,
+                index: index as u64,
+            })?;
             update_ms.push(technique.timings().total().as_secs_f64() * 1e3);
         }
         update_ms.sort_by(|a, b| a.total_cmp(b));
         let receivers = technique.receiver_irradiance().map(<[Rgb]>::to_vec);
         let lightmap = match receivers {
-            Some(values) if values.len() == reference_lightmap.mean.len() => error_norms(&values, &reference_lightmap.mean),
-            _ => ErrorNorms { relative_rmse: f64::NAN, mean_relative_error: f64::NAN },
+            Some(values) if values.len() == reference_lightmap.mean.len() => {
+                error_norms(&values, &reference_lightmap.mean)
+            }
+            _ => ErrorNorms {
+                relative_rmse: f64::NAN,
+                mean_relative_error: f64::NAN,
+            },
         };
-        let renders = render_with_technique(context, &lights, technique.as_ref(), settings.spp, settings.seed, &bars);
+        let renders = render_with_technique(
+            context,
+            &lights,
+            technique.as_ref(),
+            settings.spp,
+            settings.seed,
+            &bars,
+        );
         let image = error_norms(&renders.indirect.pixels, &reference.indirect.pixels);
         let name = kind.name();
-        renders.indirect.write(&output.join(format!("{name}-indirect.png")), Some(indirect_exposure))?;
-        renders.indirect.write(&output.join(format!("{name}-indirect.exr")), None)?;
-        renders.full.write(&output.join(format!("{name}-full.png")), Some(full_exposure))?;
-        error_image(&renders.indirect, &reference.indirect, 0.5).write(&output.join(format!("{name}-error.png")), Some(1.0))?;
+        renders.indirect.write(
+            &output.join(format!("{name}-indirect.png")),
+            Some(indirect_exposure),
+        )?;
+        renders
+            .indirect
+            .write(&output.join(format!("{name}-indirect.exr")), None)?;
+        renders.full.write(
+            &output.join(format!("{name}-full.png")),
+            Some(full_exposure),
+        )?;
+        error_image(&renders.indirect, &reference.indirect, 0.5)
+            .write(&output.join(format!("{name}-error.png")), Some(1.0))?;
         rows.push(Row {
             technique: name.to_string(),
             lightmap,
@@ -108,13 +172,14 @@ pub fn run(context: &std::sync::Arc<SceneContext>, scene_path: &Path, names: &[S
     writeln!(table, "### {}\n", scene_path.display())?;
     writeln!(
         table,
-        "{} receivers; reference: {} paths per receiver ({:.1} s, noise {:.2} %), {} paths per pixel ({:.1} s), max bounces {}.\n",
+        "{} receivers; reference: {} paths per receiver ({:.1} s, its own noise {:.1} % relRMSE), {} paths per pixel ({:.1} s, noise {:.1} %), max bounces {}.\n",
         context.atlas.receivers.len(),
         settings.reference_samples,
         reference_lightmap_seconds,
-        noise * 100.0,
+        lightmap_noise * 100.0,
         settings.reference_spp,
         reference_image_seconds,
+        image_noise * 100.0,
         settings.max_bounces
     )?;
     writeln!(table, "| technique | lightmap relRMSE | lightmap MRE | image relRMSE | image MRE | update ms | memory |")?;
@@ -138,7 +203,8 @@ pub fn run(context: &std::sync::Arc<SceneContext>, scene_path: &Path, names: &[S
         let name = &row.technique;
         writeln!(report, "| {name} indirect | {name} error (full scale 50 % of mean) | {name} full |\n|---|---|---|\n| ![]({name}-indirect.png) | ![]({name}-error.png) | ![]({name}-full.png) |\n")?;
     }
-    std::fs::write(output.join("report.md"), report).with_context(|| format!("{}: cannot write report.md", output.display()))?;
+    std::fs::write(output.join("report.md"), report)
+        .with_context(|| format!("{}: cannot write report.md", output.display()))?;
     Ok(table)
 }
 
@@ -171,7 +237,12 @@ fn scenes_folder(explicit: Option<PathBuf>) -> Result<PathBuf> {
     bail!("no shipped scenes found: run from the repository root or pass --scenes DIR")
 }
 
-pub fn demo(scenes: Option<PathBuf>, settings: &CompareSettings, output: &Path, quiet: bool) -> Result<()> {
+pub fn demo(
+    scenes: Option<PathBuf>,
+    settings: &CompareSettings,
+    output: &Path,
+    quiet: bool,
+) -> Result<()> {
     let folder = scenes_folder(scenes)?;
     let mut scene_files: Vec<PathBuf> = std::fs::read_dir(&folder)
         .with_context(|| format!("{}: cannot list scenes", folder.display()))?
@@ -182,23 +253,51 @@ pub fn demo(scenes: Option<PathBuf>, settings: &CompareSettings, output: &Path, 
     if scene_files.is_empty() {
         bail!("{}: no scene folders with scene.toml", folder.display());
     }
-    let names: Vec<String> = techniques::kinds().iter().map(|kind| kind.name().to_string()).filter(|name| name != "reference").collect();
-    let options = crate::SceneOptions { lightmap_resolution: 128, texel_size: None, area_samples: 16 };
+    let names: Vec<String> = techniques::kinds()
+        .iter()
+        .map(|kind| kind.name().to_string())
+        .filter(|name| name != "reference")
+        .collect();
+    let options = crate::SceneOptions {
+        lightmap_resolution: 128,
+        texel_size: None,
+        area_samples: 16,
+    };
     let start = Instant::now();
     let mut summary = String::from("# relight demo\n\nEvery technique against the path-traced reference; see each scene's report.md for images.\n\n");
     for scene in &scene_files {
-        let name = scene.parent().and_then(Path::file_name).map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = scene
+            .parent()
+            .and_then(Path::file_name)
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         if !quiet {
             eprintln!("== {name}");
         }
         let context = crate::load_context(scene, &options, quiet)?;
-        let table = run(&context, scene, &names, settings, &output.join(&name), quiet)?;
+        let table = run(
+            &context,
+            scene,
+            &names,
+            settings,
+            &output.join(&name),
+            quiet,
+        )?;
         println!("{table}");
         summary.push_str(&table);
         summary.push('\n');
     }
-    writeln!(summary, "Total demo time: {:.1} s", start.elapsed().as_secs_f64())?;
-    std::fs::write(output.join("README.md"), &summary).with_context(|| format!("{}: cannot write", output.display()))?;
-    println!("demo finished in {:.1} s; reports in {}", start.elapsed().as_secs_f64(), output.display());
+    writeln!(
+        summary,
+        "Total demo time: {:.1} s",
+        start.elapsed().as_secs_f64()
+    )?;
+    std::fs::write(output.join("README.md"), &summary)
+        .with_context(|| format!("{}: cannot write", output.display()))?;
+    println!(
+        "demo finished in {:.1} s; reports in {}",
+        start.elapsed().as_secs_f64(),
+        output.display()
+    );
     Ok(())
 }

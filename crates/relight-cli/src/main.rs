@@ -21,7 +21,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 #[derive(Parser)]
-#[command(name = "relight", version, about = "Real-time global illumination of static scenes under dynamic lights")]
+#[command(
+    name = "relight",
+    version,
+    about = "Real-time global illumination of static scenes under dynamic lights"
+)]
 struct Cli {
     /// No progress bars.
     #[arg(long, short, global = true)]
@@ -68,6 +72,9 @@ enum Command {
         scene: PathBuf,
         #[command(flatten)]
         options: SceneOptions,
+        /// Also describe this bake file and check it belongs to the scene.
+        #[arg(long)]
+        bake: Option<PathBuf>,
     },
     /// List the available techniques.
     Techniques,
@@ -170,16 +177,24 @@ enum GenKind {
 impl SceneOptions {
     fn context_settings(&self) -> Result<ContextSettings> {
         let lightmap = match self.texel_size {
-            Some(size) if !(size.is_finite() && size > 0.0) => bail!("--texel-size must be a positive number of metres, got {size}"),
+            Some(size) if !(size.is_finite() && size > 0.0) => {
+                bail!("--texel-size must be a positive number of metres, got {size}")
+            }
             Some(size) => TexelDensity::MetresPerTexel(size),
             None if !(8..=16384).contains(&self.lightmap_resolution) => {
-                bail!("--lightmap-resolution must be between 8 and 16384, got {}", self.lightmap_resolution)
+                bail!(
+                    "--lightmap-resolution must be between 8 and 16384, got {}",
+                    self.lightmap_resolution
+                )
             }
             None => TexelDensity::TargetResolution(self.lightmap_resolution),
         };
         Ok(ContextSettings {
             lightmap,
-            direct: DirectSettings { area_light_samples: self.area_samples, ..DirectSettings::default() },
+            direct: DirectSettings {
+                area_light_samples: self.area_samples,
+                ..DirectSettings::default()
+            },
         })
     }
 }
@@ -189,7 +204,9 @@ impl TechniqueOptions {
         self.set
             .iter()
             .map(|pair| {
-                let (key, value) = pair.split_once('=').with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
+                let (key, value) = pair
+                    .split_once('=')
+                    .with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
                 Ok((key.trim().to_string(), value.trim().to_string()))
             })
             .collect()
@@ -230,11 +247,19 @@ fn create_technique(
         (Some(path), true) => {
             let (header, payload) = relight_technique::read_bake(path)?;
             if header.technique != kind.name() {
-                bail!("{}: this bake is for technique '{}', not '{}'", path.display(), header.technique, kind.name());
+                bail!(
+                    "{}: this bake is for technique '{}', not '{}'",
+                    path.display(),
+                    header.technique,
+                    kind.name()
+                );
             }
             let fingerprint = relight_technique::scene_fingerprint(&context.scene, &context.atlas);
             if header.scene_fingerprint != fingerprint {
-                bail!("{}: this bake was made for another scene or lightmap resolution; bake again", path.display());
+                bail!(
+                    "{}: this bake was made for another scene or lightmap resolution; bake again",
+                    path.display()
+                );
             }
             Some(payload)
         }
@@ -242,7 +267,11 @@ fn create_technique(
             tracing::info!("no --bake given: baking {} in memory", kind.name());
             Some(kind.bake(context, &pairs, &bars)?)
         }
-        (Some(path), false) => bail!("{}: technique '{}' needs no bake; drop --bake", path.display(), kind.name()),
+        (Some(path), false) => bail!(
+            "{}: technique '{}' needs no bake; drop --bake",
+            path.display(),
+            kind.name()
+        ),
         (None, false) => None,
     };
     Ok(kind.create(context.clone(), payload.as_deref(), &pairs, &bars)?)
@@ -251,19 +280,29 @@ fn create_technique(
 fn main() {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_env("RELIGHT_LOG")
+                .unwrap_or_else(|_| "warn".into()),
+        )
         .with_writer(std::io::stderr)
         .without_time()
         .init();
     if let Some(threads) = cli.threads {
-        if let Err(error) = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global() {
+        if let Err(error) = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build_global()
+        {
             eprintln!("error: --threads {threads}: {error}");
             std::process::exit(2);
         }
     }
     if let Err(error) = run(cli) {
         // A closed pipe (`relight info x | head`) is not an error.
-        if error.chain().any(|cause| cause.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)) {
+        if error.chain().any(|cause| {
+            cause
+                .downcast_ref::<std::io::Error>()
+                .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+        }) {
             std::process::exit(0);
         }
         eprintln!("error: {error:#}");
@@ -274,7 +313,11 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     let quiet = cli.quiet;
     match cli.command {
-        Command::Info { scene, options } => info(&scene, &options, quiet),
+        Command::Info {
+            scene,
+            options,
+            bake,
+        } => info(&scene, &options, bake.as_deref(), quiet),
         Command::Techniques => {
             for kind in techniques::kinds() {
                 let bake = if kind.needs_bake() { "bake" } else { "no bake" };
@@ -282,7 +325,17 @@ fn run(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
-        Command::Render { scene, technique, options, spp, max_bounces, indirect_only, exposure, seed, output } => {
+        Command::Render {
+            scene,
+            technique,
+            options,
+            spp,
+            max_bounces,
+            indirect_only,
+            exposure,
+            seed,
+            output,
+        } => {
             let context = load_context(&scene, &options, quiet)?;
             let lights = context.scene.lights.clone();
             let bars = Bars::new(quiet);
@@ -290,21 +343,44 @@ fn run(cli: Cli) -> Result<()> {
                 if technique.bake.is_some() || !technique.set.is_empty() {
                     bail!("--technique reference takes no --bake or --set; use --spp, --max-bounces and --seed");
                 }
-                let settings = PathSettings { max_bounces, seed, ..PathSettings::default() };
+                let settings = PathSettings {
+                    max_bounces,
+                    seed,
+                    ..PathSettings::default()
+                };
                 relight_render::render::render_reference(&context, &lights, settings, spp, &bars)
             } else {
                 let mut instance = create_technique(&context, &technique, quiet)?;
-                instance.update(&Frame { lights: &lights, index: 0 })?;
-                relight_render::render::render_with_technique(&context, &lights, instance.as_ref(), spp, seed, &bars)
+                instance.update(&Frame {
+                    lights: &lights,
+                    index: 0,
+                })?;
+                relight_render::render::render_with_technique(
+                    &context,
+                    &lights,
+                    instance.as_ref(),
+                    spp,
+                    seed,
+                    &bars,
+                )
             };
-            let image = if indirect_only { &renders.indirect } else { &renders.full };
+            let image = if indirect_only {
+                &renders.indirect
+            } else {
+                &renders.full
+            };
             image.write(&output, exposure)?;
             if !quiet {
                 eprintln!("wrote {}", output.display());
             }
             Ok(())
         }
-        Command::Bake { scene, technique, options, output } => {
+        Command::Bake {
+            scene,
+            technique,
+            options,
+            output,
+        } => {
             let context = load_context(&scene, &options, quiet)?;
             let kind = techniques::find(&technique.technique)?;
             let start = std::time::Instant::now();
@@ -312,31 +388,63 @@ fn run(cli: Cli) -> Result<()> {
             let header = relight_technique::BakeHeader {
                 technique: kind.name().to_string(),
                 payload_version: 1,
-                scene_fingerprint: relight_technique::scene_fingerprint(&context.scene, &context.atlas),
+                scene_fingerprint: relight_technique::scene_fingerprint(
+                    &context.scene,
+                    &context.atlas,
+                ),
             };
             relight_technique::write_bake_atomic(&output, &header, &payload)?;
-            println!("baked {} in {:.2} s: {} ({} bytes)", kind.name(), start.elapsed().as_secs_f64(), output.display(), payload.len());
+            println!(
+                "baked {} in {:.2} s: {} ({} bytes)",
+                kind.name(),
+                start.elapsed().as_secs_f64(),
+                output.display(),
+                payload.len()
+            );
             Ok(())
         }
-        Command::Bench { scene, technique, options, frames, json } => {
+        Command::Bench {
+            scene,
+            technique,
+            options,
+            frames,
+            json,
+        } => {
             let context = load_context(&scene, &options, quiet)?;
             let mut instance = create_technique(&context, &technique, quiet)?;
             let report = bench::run(&context, instance.as_mut(), frames, &Bars::new(quiet))?;
             println!("{report}");
             if let Some(path) = json {
-                std::fs::write(&path, serde_json::to_string_pretty(&report)?).with_context(|| format!("{}: cannot write", path.display()))?;
+                std::fs::write(&path, serde_json::to_string_pretty(&report)?)
+                    .with_context(|| format!("{}: cannot write", path.display()))?;
             }
             Ok(())
         }
-        Command::BenchRays { scene, rays, repeats } => bench::rays(&scene, rays, repeats, quiet),
-        Command::Compare { scene, techniques, options, settings, output } => {
+        Command::BenchRays {
+            scene,
+            rays,
+            repeats,
+        } => bench::rays(&scene, rays, repeats, quiet),
+        Command::Compare {
+            scene,
+            techniques,
+            options,
+            settings,
+            output,
+        } => {
             let context = load_context(&scene, &options, quiet)?;
             let table = compare::run(&context, &scene, &techniques, &settings, &output, quiet)?;
             println!("{table}");
             Ok(())
         }
-        Command::Demo { scenes, settings, output } => compare::demo(scenes, &settings, &output, quiet),
-        Command::Gen { kind: GenKind::Atrium { triangles, output } } => {
+        Command::Demo {
+            scenes,
+            settings,
+            output,
+        } => compare::demo(scenes, &settings, &output, quiet),
+        Command::Gen {
+            kind: GenKind::Atrium { triangles, output },
+        } => {
             let scene = relight_scene::generate::write_atrium(&output, triangles)?;
             println!("wrote {}", scene.display());
             Ok(())
@@ -344,7 +452,7 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn info(path: &Path, options: &SceneOptions, quiet: bool) -> Result<()> {
+fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -> Result<()> {
     let context = load_context(path, options, quiet)?;
     let scene = &context.scene;
     let (lo, hi) = scene.mesh.bounds();
@@ -354,17 +462,77 @@ fn info(path: &Path, options: &SceneOptions, quiet: bool) -> Result<()> {
     println!("vertices        {}", scene.mesh.positions.len());
     println!("materials       {}", scene.materials.len());
     println!("textures        {}", scene.textures.len());
-    println!("lights          {} (+ {} emissive triangles)", scene.lights.len(), context.emitters.triangles.len());
-    println!("bounds          [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
+    println!(
+        "lights          {} (+ {} emissive triangles)",
+        scene.lights.len(),
+        context.emitters.triangles.len()
+    );
+    println!(
+        "bounds          [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]",
+        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+    );
     println!("surface area    {:.3} m^2", scene.mesh.total_area());
-    println!("atlas           {} x {} texels, {} charts{}", atlas.width, atlas.height, atlas.chart_count, if atlas.from_mesh_uvs { " (mesh UV set 2)" } else { "" });
+    println!(
+        "atlas           {} x {} texels, {} charts{}",
+        atlas.width,
+        atlas.height,
+        atlas.chart_count,
+        if atlas.from_mesh_uvs {
+            " (mesh UV set 2)"
+        } else {
+            ""
+        }
+    );
     println!("texel size      {:.4} m", atlas.metres_per_texel);
     println!("receivers       {}", atlas.receivers.len());
     println!("coverage        {:.1} %", atlas.coverage() * 100.0);
-    println!("BVH             {} nodes, {:.1} MiB, built in {:.1} ms", context.bvh.node_count(), context.bvh.memory_bytes() as f64 / 1048576.0, context.bvh_build_time.as_secs_f64() * 1e3);
-    println!("atlas build     {:.1} ms", context.atlas_build_time.as_secs_f64() * 1e3);
+    println!(
+        "BVH             {} nodes, {:.1} MiB, built in {:.1} ms",
+        context.bvh.node_count(),
+        context.bvh.memory_bytes() as f64 / 1048576.0,
+        context.bvh_build_time.as_secs_f64() * 1e3
+    );
+    println!(
+        "atlas build     {:.1} ms",
+        context.atlas_build_time.as_secs_f64() * 1e3
+    );
     for warning in &scene.warnings {
         println!("warning         {warning}");
+    }
+    if let Some(bake) = bake {
+        let (header, payload) = relight_technique::read_bake(bake)?;
+        let matches =
+            header.scene_fingerprint == relight_technique::scene_fingerprint(scene, atlas);
+        println!(
+            "bake            {} ({} payload version {}, {} bytes)",
+            bake.display(),
+            header.technique,
+            header.payload_version,
+            payload.len()
+        );
+        println!(
+            "bake scene      {}",
+            if matches {
+                "matches this scene and lightmap"
+            } else {
+                "made for another scene or lightmap resolution: bake again"
+            }
+        );
+        if matches {
+            let kind = techniques::find(&header.technique)?;
+            let technique = kind.create(
+                context.clone(),
+                Some(&payload),
+                &[],
+                &relight_technique::NoProgress,
+            )?;
+            for entry in technique.memory() {
+                println!(
+                    "memory          {:<28} {:>12} bytes",
+                    entry.buffer, entry.bytes
+                );
+            }
+        }
     }
     Ok(())
 }

@@ -8,8 +8,15 @@ pub fn kinds() -> &'static [&'static dyn TechniqueKind] {
 }
 
 pub fn find(name: &str) -> anyhow::Result<&'static dyn TechniqueKind> {
-    kinds().iter().copied().find(|kind| kind.name() == name).ok_or_else(|| {
-        let known: Vec<&str> = kinds().iter().map(|kind| kind.name()).collect();
-        anyhow::anyhow!("unknown technique '{name}'; available: {}", known.join(", "))
-    })
+    kinds()
+        .iter()
+        .copied()
+        .find(|kind| kind.name() == name)
+        .ok_or_else(|| {
+            let known: Vec<&str> = kinds().iter().map(|kind| kind.name()).collect();
+            anyhow::anyhow!(
+                "unknown technique '{name}'; available: {}",
+                known.join(", ")
+            )
+        })
 }

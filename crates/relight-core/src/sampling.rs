@@ -69,7 +69,10 @@ impl SampleStream {
     #[inline]
     #[allow(clippy::new_ret_no_self)]
     pub fn new(seed: u64, item: u64, pass: u64) -> Pcg32 {
-        Pcg32::new(mix64(seed ^ mix64(item)), mix64(pass.wrapping_add(0x5851_F42D)))
+        Pcg32::new(
+            mix64(seed ^ mix64(item)),
+            mix64(pass.wrapping_add(0x5851_F42D)),
+        )
     }
 }
 
@@ -88,7 +91,10 @@ pub fn radical_inverse(base: u32, mut index: u64) -> f64 {
 
 /// Point `index` of the 2D Halton sequence (bases 2 and 3).
 pub fn halton2(index: u64) -> Vec2 {
-    Vec2::new(radical_inverse(2, index) as f32, radical_inverse(3, index) as f32)
+    Vec2::new(
+        radical_inverse(2, index) as f32,
+        radical_inverse(3, index) as f32,
+    )
 }
 
 /// Orthonormal basis around a unit normal (Duff et al. 2017, branchless).
@@ -97,7 +103,11 @@ pub fn orthonormal_basis(normal: Vec3) -> (Vec3, Vec3) {
     let sign = 1.0f32.copysign(normal.z);
     let a = -1.0 / (sign + normal.z);
     let b = normal.x * normal.y * a;
-    let tangent = Vec3::new(1.0 + sign * normal.x * normal.x * a, sign * b, -sign * normal.x);
+    let tangent = Vec3::new(
+        1.0 + sign * normal.x * normal.x * a,
+        sign * b,
+        -sign * normal.x,
+    );
     let bitangent = Vec3::new(b, sign + normal.y * normal.y * a, -normal.y);
     (tangent, bitangent)
 }

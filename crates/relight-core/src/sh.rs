@@ -55,7 +55,10 @@ fn tables() -> &'static Tables {
 /// Evaluates all basis functions of `bands` bands at the unit `direction`
 /// into `out[..bands*bands]`.
 pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
-    assert!((1..=MAX_BANDS).contains(&bands), "SH bands must be 1..=8, got {bands}");
+    assert!(
+        (1..=MAX_BANDS).contains(&bands),
+        "SH bands must be 1..=8, got {bands}"
+    );
     assert!(out.len() >= coefficient_count(bands));
     let tables = tables();
     let (x, y, z) = (direction.x, direction.y, direction.z);
@@ -86,11 +89,16 @@ pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
         cos_m[m] = x * cos_m[m - 1] - y * sin_m[m - 1];
         sin_m[m] = x * sin_m[m - 1] + y * cos_m[m - 1];
     }
-    for l in 0..bands {
+    for (l, (legendre_row, normalisation_row)) in legendre
+        .iter()
+        .zip(&tables.normalisation)
+        .take(bands)
+        .enumerate()
+    {
         let centre = l * (l + 1);
-        out[centre] = tables.normalisation[l][0] * legendre[l][0];
+        out[centre] = normalisation_row[0] * legendre_row[0];
         for m in 1..=l {
-            let scaled = tables.normalisation[l][m] * legendre[l][m];
+            let scaled = normalisation_row[m] * legendre_row[m];
             out[centre + m] = scaled * cos_m[m];
             out[centre - m] = scaled * sin_m[m];
         }
@@ -105,11 +113,15 @@ pub fn cosine_lobe_factor(band: usize) -> f32 {
     match band {
         0 => std::f32::consts::PI,
         1 => 2.0 * std::f32::consts::PI / 3.0,
-        l if l % 2 == 1 => 0.0,
+        l if !l.is_multiple_of(2) => 0.0,
         l => {
             let l = l as f64;
             // 2 pi (-1)^(l/2 - 1) / ((l+2)(l-1)) * l! / (2^l ((l/2)!)^2)
-            let sign = if (l as usize / 2 - 1) % 2 == 0 { 1.0 } else { -1.0 };
+            let sign = if (l as usize / 2 - 1).is_multiple_of(2) {
+                1.0
+            } else {
+                -1.0
+            };
             let factorial = |n: usize| (1..=n).fold(1.0f64, |acc, k| acc * k as f64);
             let value = 2.0 * PI * sign / ((l + 2.0) * (l - 1.0)) * factorial(l as usize)
                 / (2f64.powi(l as i32) * factorial(l as usize / 2).powi(2));
@@ -216,7 +228,10 @@ mod tests {
         ];
         for (index, (got, want)) in out.iter().zip(expected).enumerate() {
             // Sloan's constants are printed to 6 digits.
-            assert!((got - want).abs() < 1e-5, "coefficient {index}: {got} vs {want}");
+            assert!(
+                (got - want).abs() < 1e-5,
+                "coefficient {index}: {got} vs {want}"
+            );
         }
     }
 

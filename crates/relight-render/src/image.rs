@@ -37,14 +37,17 @@ impl Image {
     /// Exposure that maps the log-average luminance to middle grey
     /// (Reinhard et al. 2002's key value 0.18); 1 for a black image.
     pub fn auto_exposure(&self) -> f32 {
-        let (sum, count) = self.pixels.iter().fold((0.0f64, 0usize), |(sum, count), pixel| {
-            let value = luminance(*pixel);
-            if value > 0.0 && value.is_finite() {
-                (sum + (value as f64 + 1e-6).ln(), count + 1)
-            } else {
-                (sum, count)
-            }
-        });
+        let (sum, count) = self
+            .pixels
+            .iter()
+            .fold((0.0f64, 0usize), |(sum, count), pixel| {
+                let value = luminance(*pixel);
+                if value > 0.0 && value.is_finite() {
+                    (sum + (value as f64 + 1e-6).ln(), count + 1)
+                } else {
+                    (sum, count)
+                }
+            });
         if count == 0 {
             return 1.0;
         }
@@ -54,11 +57,16 @@ impl Image {
     /// Writes EXR (linear, 32-bit float) or PNG (exposure-scaled, ACES-fitted
     /// tone curve, sRGB), chosen by the extension. `exposure` None = auto.
     pub fn write(&self, path: &Path, exposure: Option<f32>) -> Result<(), ImageError> {
-        let extension = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+        let extension = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
         match extension.as_deref() {
             Some("exr") => self.write_exr(path),
             Some("png") => self.write_png(path, exposure.unwrap_or_else(|| self.auto_exposure())),
-            _ => Err(ImageError::Extension { path: path.to_path_buf() }),
+            _ => Err(ImageError::Extension {
+                path: path.to_path_buf(),
+            }),
         }
     }
 
@@ -68,13 +76,25 @@ impl Image {
             let pixel = self.pixels[y * width + x];
             (pixel.x, pixel.y, pixel.z)
         })
-        .map_err(|error| ImageError::Write { path: path.to_path_buf(), message: error.to_string() })
+        .map_err(|error| ImageError::Write {
+            path: path.to_path_buf(),
+            message: error.to_string(),
+        })
     }
 
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), ImageError> {
         let bytes = self.to_srgb8(exposure);
-        image::save_buffer(path, &bytes, self.width, self.height, image::ColorType::Rgb8)
-            .map_err(|error| ImageError::Write { path: path.to_path_buf(), message: error.to_string() })
+        image::save_buffer(
+            path,
+            &bytes,
+            self.width,
+            self.height,
+            image::ColorType::Rgb8,
+        )
+        .map_err(|error| ImageError::Write {
+            path: path.to_path_buf(),
+            message: error.to_string(),
+        })
     }
 
     /// Display-ready 8-bit sRGB bytes.
@@ -83,7 +103,8 @@ impl Image {
             .iter()
             .flat_map(|pixel| {
                 let mapped = aces_fitted(*pixel * exposure);
-                [mapped.x, mapped.y, mapped.z].map(|value| (linear_to_srgb(value) * 255.0 + 0.5) as u8)
+                [mapped.x, mapped.y, mapped.z]
+                    .map(|value| (linear_to_srgb(value) * 255.0 + 0.5) as u8)
             })
             .collect()
     }
@@ -98,7 +119,10 @@ impl Image {
                 image.pixels[index] = Rgb::new(r, g, b);
             },
         )
-        .map_err(|error| ImageError::Write { path: path.to_path_buf(), message: error.to_string() })?;
+        .map_err(|error| ImageError::Write {
+            path: path.to_path_buf(),
+            message: error.to_string(),
+        })?;
         Ok(image.layer_data.channel_data.pixels)
     }
 }
@@ -108,7 +132,8 @@ impl Image {
 #[inline]
 pub fn aces_fitted(colour: Rgb) -> Rgb {
     let (a, b, c, d, e) = (2.51f32, 0.03f32, 2.43f32, 0.59f32, 0.14f32);
-    let mapped = (colour * (colour * a + Rgb::splat(b))) / (colour * (colour * c + Rgb::splat(d)) + Rgb::splat(e));
+    let mapped = (colour * (colour * a + Rgb::splat(b)))
+        / (colour * (colour * c + Rgb::splat(d)) + Rgb::splat(e));
     mapped.clamp(Rgb::ZERO, Rgb::ONE)
 }
 
@@ -121,7 +146,11 @@ pub fn false_colour(value: f32) -> Rgb {
         (0.75, Rgb::new(1.0, 0.9, 0.0)),
         (1.0, Rgb::new(1.0, 0.0, 0.0)),
     ];
-    let value = if value.is_finite() { value.clamp(0.0, 1.0) } else { 1.0 };
+    let value = if value.is_finite() {
+        value.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
     for pair in stops.windows(2) {
         let ((start, low), (end, high)) = (pair[0], pair[1]);
         if value <= end {
@@ -151,8 +180,14 @@ mod tests {
     #[test]
     fn png_is_written_and_bad_extension_refused() {
         let folder = tempfile::tempdir().unwrap();
-        let image = Image { width: 2, height: 1, pixels: vec![Rgb::splat(0.18), Rgb::splat(100.0)] };
-        image.write(&folder.path().join("a.png"), Some(1.0)).unwrap();
+        let image = Image {
+            width: 2,
+            height: 1,
+            pixels: vec![Rgb::splat(0.18), Rgb::splat(100.0)],
+        };
+        image
+            .write(&folder.path().join("a.png"), Some(1.0))
+            .unwrap();
         let bytes = image.to_srgb8(1.0);
         // The fitted curve maps 0.18 to 0.2669 linear, sRGB 141.1; 100 saturates.
         assert!((140..=142).contains(&bytes[0]), "{}", bytes[0]);
@@ -162,7 +197,11 @@ mod tests {
 
     #[test]
     fn auto_exposure_maps_uniform_image_to_middle_grey() {
-        let image = Image { width: 2, height: 2, pixels: vec![Rgb::splat(2.0); 4] };
+        let image = Image {
+            width: 2,
+            height: 2,
+            pixels: vec![Rgb::splat(2.0); 4],
+        };
         assert!((image.auto_exposure() * 2.0 - 0.18).abs() < 1e-4);
     }
 }

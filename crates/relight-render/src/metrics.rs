@@ -17,8 +17,13 @@ pub struct ErrorNorms {
 }
 
 pub fn error_norms(values: &[Rgb], reference: &[Rgb]) -> ErrorNorms {
-    assert_eq!(values.len(), reference.len(), "compared buffers differ in size");
-    let (mut error_squared, mut reference_squared, mut error_absolute, mut reference_absolute) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    assert_eq!(
+        values.len(),
+        reference.len(),
+        "compared buffers differ in size"
+    );
+    let (mut error_squared, mut reference_squared, mut error_absolute, mut reference_absolute) =
+        (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     for (value, truth) in values.iter().zip(reference) {
         for channel in 0..3 {
             let difference = (value[channel] - truth[channel]) as f64;
@@ -29,16 +34,49 @@ pub fn error_norms(values: &[Rgb], reference: &[Rgb]) -> ErrorNorms {
         }
     }
     ErrorNorms {
-        relative_rmse: if reference_squared > 0.0 { (error_squared / reference_squared).sqrt() } else { 0.0 },
-        mean_relative_error: if reference_absolute > 0.0 { error_absolute / reference_absolute } else { 0.0 },
+        relative_rmse: if reference_squared > 0.0 {
+            (error_squared / reference_squared).sqrt()
+        } else {
+            0.0
+        },
+        mean_relative_error: if reference_absolute > 0.0 {
+            error_absolute / reference_absolute
+        } else {
+            0.0
+        },
+    }
+}
+
+/// Relative noise of a Monte Carlo estimate: the L2 norm of its per-element
+/// standard errors over the L2 norm of the estimate. A perfect technique
+/// compared against this reference would still show about this relRMSE.
+pub fn relative_noise(estimate: &[Rgb], standard_error: &[Rgb]) -> f64 {
+    let noise: f64 = standard_error
+        .iter()
+        .map(|e| e.length_squared() as f64)
+        .sum();
+    let signal: f64 = estimate.iter().map(|m| m.length_squared() as f64).sum();
+    if signal > 0.0 {
+        (noise / signal).sqrt()
+    } else {
+        0.0
     }
 }
 
 /// False-colour image of |value - reference| luminance relative to the
 /// reference's mean luminance; full scale (red) at `full_scale` (e.g. 0.5 = 50%).
 pub fn error_image(values: &Image, reference: &Image, full_scale: f32) -> Image {
-    let mean = reference.pixels.iter().map(|p| luminance(*p) as f64).sum::<f64>() / reference.pixels.len().max(1) as f64;
-    let scale = if mean > 0.0 { 1.0 / (mean as f32 * full_scale) } else { 0.0 };
+    let mean = reference
+        .pixels
+        .iter()
+        .map(|p| luminance(*p) as f64)
+        .sum::<f64>()
+        / reference.pixels.len().max(1) as f64;
+    let scale = if mean > 0.0 {
+        1.0 / (mean as f32 * full_scale)
+    } else {
+        0.0
+    };
     Image {
         width: values.width,
         height: values.height,
@@ -46,7 +84,9 @@ pub fn error_image(values: &Image, reference: &Image, full_scale: f32) -> Image 
             .pixels
             .iter()
             .zip(&reference.pixels)
-            .map(|(value, truth)| false_colour((luminance(*value) - luminance(*truth)).abs() * scale))
+            .map(|(value, truth)| {
+                false_colour((luminance(*value) - luminance(*truth)).abs() * scale)
+            })
             .collect(),
     }
 }

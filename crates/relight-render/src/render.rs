@@ -20,22 +20,28 @@ pub struct Renders {
     pub direct: Image,
     /// Light that bounced at least once before the visible surface.
     pub indirect: Image,
+    /// Standard error of `indirect` per pixel (Monte Carlo renders only;
+    /// zero for deterministic technique renders).
+    pub indirect_standard_error: Image,
 }
 
-/// Shared pixel loop: `shade(x, y, pixel_index)` returns (direct, indirect)
-/// sums for one pixel; rows run in parallel, reported to `progress`.
+/// Shared pixel loop: `shade(x, y, pixel_index)` returns the direct and
+/// indirect means of one pixel and the indirect standard error; rows run in
+/// parallel, reported to `progress`.
 fn render_pixels(
     width: u32,
     height: u32,
     progress: &dyn Progress,
     stage: &str,
-    shade: impl Fn(u32, u32, u64) -> (Rgb, Rgb) + Sync,
+    shade: impl Fn(u32, u32, u64) -> (Rgb, Rgb, Rgb) + Sync,
 ) -> Renders {
     progress.start(stage, height as u64);
-    let rows: Vec<Vec<(Rgb, Rgb)>> = (0..height)
+    let rows: Vec<Vec<(Rgb, Rgb, Rgb)>> = (0..height)
         .into_par_iter()
         .map(|y| {
-            let row = (0..width).map(|x| shade(x, y, (y as u64) * width as u64 + x as u64)).collect();
+            let row = (0..width)
+                .map(|x| shade(x, y, (y as u64) * width as u64 + x as u64))
+                .collect();
             progress.advance(1);
             row
         })
@@ -45,10 +51,12 @@ fn render_pixels(
         full: Image::new(width, height),
         direct: Image::new(width, height),
         indirect: Image::new(width, height),
+        indirect_standard_error: Image::new(width, height),
     };
-    for (index, (direct, indirect)) in rows.into_iter().flatten().enumerate() {
+    for (index, (direct, indirect, standard_error)) in rows.into_iter().flatten().enumerate() {
         renders.direct.pixels[index] = direct;
         renders.indirect.pixels[index] = indirect;
+        renders.indirect_standard_error.pixels[index] = standard_error;
         renders.full.pixels[index] = direct + indirect;
     }
     renders
@@ -66,25 +74,48 @@ pub fn render_reference(
     let tracer = PathTracer::new(&direct, settings);
     let camera = CameraRays::new(&context.scene.camera);
     let spp = spp.max(1);
-    render_pixels(camera.width, camera.height, progress, "path tracing", |x, y, pixel| {
-        let mut direct_sum = [0.0f64; 3];
-        let mut indirect_sum = [0.0f64; 3];
-        for sample in 0..spp {
-            let mut rng = SampleStream::new(settings.seed, pixel, sample as u64);
-            let ray = camera.ray(x, y, rng.next_vec2());
-            let split = tracer.camera_sample(lights, &ray, &mut rng, (pixel << 24) ^ sample as u64);
-            for channel in 0..3 {
-                direct_sum[channel] += split.direct[channel] as f64;
-                indirect_sum[channel] += split.indirect[channel] as f64;
+    render_pixels(
+        camera.width,
+        camera.height,
+        progress,
+        "path tracing",
+        |x, y, pixel| {
+            let mut direct_sum = [0.0f64; 3];
+            let mut indirect_sum = [0.0f64; 3];
+            let mut indirect_squares = [0.0f64; 3];
+            for sample in 0..spp {
+                let mut rng = SampleStream::new(settings.seed, pixel, sample as u64);
+                let ray = camera.ray(x, y, rng.next_vec2());
+                let split =
+                    tracer.camera_sample(lights, &ray, &mut rng, (pixel << 24) ^ sample as u64);
+                for channel in 0..3 {
+                    direct_sum[channel] += split.direct[channel] as f64;
+                    indirect_sum[channel] += split.indirect[channel] as f64;
+                    indirect_squares[channel] += (split.indirect[channel] as f64).powi(2);
+                }
             }
-        }
-        let scale = 1.0 / spp as f64;
-        (to_rgb(direct_sum, scale), to_rgb(indirect_sum, scale))
-    })
+            let count = spp as f64;
+            let standard_error: [f64; 3] = std::array::from_fn(|channel| {
+                let mean = indirect_sum[channel] / count;
+                let variance = (indirect_squares[channel] / count - mean * mean).max(0.0) * count
+                    / (count - 1.0).max(1.0);
+                (variance / count).sqrt()
+            });
+            (
+                to_rgb(direct_sum, 1.0 / count),
+                to_rgb(indirect_sum, 1.0 / count),
+                to_rgb(standard_error, 1.0),
+            )
+        },
+    )
 }
 
 fn to_rgb(sum: [f64; 3], scale: f64) -> Rgb {
-    Rgb::new((sum[0] * scale) as f32, (sum[1] * scale) as f32, (sum[2] * scale) as f32)
+    Rgb::new(
+        (sum[0] * scale) as f32,
+        (sum[1] * scale) as f32,
+        (sum[2] * scale) as f32,
+    )
 }
 
 /// Images lit by `technique`'s indirect light and the shared direct light,
@@ -102,38 +133,50 @@ pub fn render_with_technique(
     let camera = CameraRays::new(&context.scene.camera);
     let scene = &context.scene;
     let spp = spp.max(1);
-    render_pixels(camera.width, camera.height, progress, technique.name(), |x, y, pixel| {
-        let mut direct_sum = Rgb::ZERO;
-        let mut indirect_sum = Rgb::ZERO;
-        for sample in 0..spp {
-            let mut rng = SampleStream::new(seed, pixel, sample as u64);
-            let ray = camera.ray(x, y, rng.next_vec2());
-            let Some(hit) = context.bvh.intersect(&ray) else {
-                direct_sum += scene.environment.radiance;
-                continue;
-            };
-            let triangle = hit.triangle as usize;
-            let [a, b, c] = scene.mesh.vertices(triangle);
-            let position = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
-            let front = scene.mesh.geometric_normal(triangle);
-            let seen_from_front = front.dot(ray.direction) < 0.0;
-            let normal = if seen_from_front { front } else { -front };
-            let albedo = scene.albedo_at(triangle, hit.barycentric);
-            let irradiance = direct.irradiance(lights, position, normal, (pixel << 24) ^ sample as u64);
-            if seen_from_front {
-                direct_sum += scene.material_of(triangle).emission;
+    render_pixels(
+        camera.width,
+        camera.height,
+        progress,
+        technique.name(),
+        |x, y, pixel| {
+            let mut direct_sum = Rgb::ZERO;
+            let mut indirect_sum = Rgb::ZERO;
+            for sample in 0..spp {
+                let mut rng = SampleStream::new(seed, pixel, sample as u64);
+                let ray = camera.ray(x, y, rng.next_vec2());
+                let Some(hit) = context.bvh.intersect(&ray) else {
+                    direct_sum += scene.environment.radiance;
+                    continue;
+                };
+                let triangle = hit.triangle as usize;
+                let [a, b, c] = scene.mesh.vertices(triangle);
+                let position = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+                let front = scene.mesh.geometric_normal(triangle);
+                let seen_from_front = front.dot(ray.direction) < 0.0;
+                let normal = if seen_from_front { front } else { -front };
+                let albedo = scene.albedo_at(triangle, hit.barycentric);
+                let irradiance =
+                    direct.irradiance(lights, position, normal, (pixel << 24) ^ sample as u64);
+                if seen_from_front {
+                    direct_sum += scene.material_of(triangle).emission;
+                }
+                direct_sum += albedo * irradiance * std::f32::consts::FRAC_1_PI;
+                // The lightmap holds the front side; the back of thin geometry
+                // asks the technique as a point in space.
+                let indirect = if seen_from_front {
+                    technique.indirect_irradiance(&SurfacePoint {
+                        position,
+                        normal,
+                        triangle: hit.triangle,
+                        barycentric: hit.barycentric,
+                    })
+                } else {
+                    technique.indirect_irradiance_in_space(position, normal)
+                };
+                indirect_sum += albedo * indirect * std::f32::consts::FRAC_1_PI;
             }
-            direct_sum += albedo * irradiance * std::f32::consts::FRAC_1_PI;
-            // The lightmap holds the front side; the back of thin geometry
-            // asks the technique as a point in space.
-            let indirect = if seen_from_front {
-                technique.indirect_irradiance(&SurfacePoint { position, normal, triangle: hit.triangle, barycentric: hit.barycentric })
-            } else {
-                technique.indirect_irradiance_in_space(position, normal)
-            };
-            indirect_sum += albedo * indirect * std::f32::consts::FRAC_1_PI;
-        }
-        let scale = 1.0 / spp as f32;
-        (direct_sum * scale, indirect_sum * scale)
-    })
+            let scale = 1.0 / spp as f32;
+            (direct_sum * scale, indirect_sum * scale, Rgb::ZERO)
+        },
+    )
 }

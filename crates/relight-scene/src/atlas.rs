@@ -30,7 +30,7 @@ pub const GUTTER_TEXELS: u32 = 2;
 
 /// Charts accept triangles whose normal is within this angle of the seed's,
 /// keeping the planar projection injective and texel stretch below 1/cos.
-const CHART_NORMAL_COS: f32 = 0.906; // 25 degrees
+const CHART_NORMAL_COS: f32 = 0.707; // 45 degrees
 
 /// How the atlas resolution is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -130,40 +130,27 @@ impl Atlas {
             return Ok(atlas);
         }
         let charts = grow_charts(scene);
-        let total_area = scene.mesh.total_area().max(1e-12);
-        let mut metres_per_texel = match density {
-            TexelDensity::MetresPerTexel(metres) => metres,
-            // Start from perfect packing (a lower bound) and grow texels until
-            // the shelves fit the square.
-            TexelDensity::TargetResolution(resolution) => (total_area as f32 / (resolution as f32).powi(2)).sqrt(),
-        };
-        let shelf_width = match density {
-            TexelDensity::TargetResolution(resolution) => Some(resolution),
-            TexelDensity::MetresPerTexel(_) => None,
-        };
-        loop {
-            let (width, height, triangle_uvs) = pack_charts(scene, &charts, metres_per_texel, shelf_width);
-            let fits = match density {
-                TexelDensity::MetresPerTexel(_) => true,
-                TexelDensity::TargetResolution(resolution) => width.max(height) <= resolution,
-            };
-            if fits || width.max(height) <= 8 {
-                if (width as u64) * (height as u64) > 16384 * 16384 {
-                    return Err(SceneError::Invalid {
-                        path: scene.source.clone(),
-                        message: format!(
-                            "lightmap would be {width}x{height} texels at {metres_per_texel} m \
-                             per texel: raise the metres per texel or lower the resolution"
-                        ),
-                    });
-                }
-                let mut atlas = Self::rasterise(scene, width, height, triangle_uvs);
-                atlas.chart_count = charts.len();
-                atlas.metres_per_texel = metres_per_texel;
-                return Ok(atlas);
+        let (metres_per_texel, (width, height, triangle_uvs)) = match density {
+            TexelDensity::MetresPerTexel(metres) => {
+                (metres, pack_charts(scene, &charts, metres, None))
             }
-            metres_per_texel *= 1.03;
+            TexelDensity::TargetResolution(resolution) => {
+                fit_resolution(scene, &charts, resolution)?
+            }
+        };
+        if (width as u64) * (height as u64) > 16384 * 16384 {
+            return Err(SceneError::Invalid {
+                path: scene.source.clone(),
+                message: format!(
+                    "lightmap would be {width}x{height} texels at {metres_per_texel} m per texel: \
+                     raise the texel size or give a lightmap resolution"
+                ),
+            });
         }
+        let mut atlas = Self::rasterise(scene, width, height, triangle_uvs);
+        atlas.chart_count = charts.len();
+        atlas.metres_per_texel = metres_per_texel;
+        Ok(atlas)
     }
 
     /// Uses the mesh's second UV set when it lies in [0,1] and no two
@@ -176,7 +163,9 @@ impl Atlas {
         let resolution = match density {
             TexelDensity::TargetResolution(resolution) => resolution,
             TexelDensity::MetresPerTexel(metres) => {
-                ((mesh.total_area() as f32).sqrt() / metres / 0.7).ceil().clamp(8.0, 16384.0) as u32
+                ((mesh.total_area() as f32).sqrt() / metres / 0.7)
+                    .ceil()
+                    .clamp(8.0, 16384.0) as u32
             }
         };
         let in_unit_square = mesh
@@ -216,27 +205,31 @@ impl Atlas {
         // Per texel, the best (distance-to-triangle, triangle) packed so that
         // an atomic min picks the same winner whatever the thread order.
         let best: Vec<AtomicU64> = (0..texel_count).map(|_| AtomicU64::new(u64::MAX)).collect();
-        triangle_uvs.par_iter().enumerate().for_each(|(triangle, uvs)| {
-            if scene.mesh.area(triangle) <= 0.0 {
-                return;
-            }
-            let lo = uvs[0].min(uvs[1]).min(uvs[2]).floor().max(Vec2::ZERO);
-            let hi = uvs[0].max(uvs[1]).max(uvs[2]).ceil();
-            let x_end = (hi.x as u32).min(width);
-            let y_end = (hi.y as u32).min(height);
-            for y in lo.y as u32..y_end {
-                for x in lo.x as u32..x_end {
-                    let texel_min = Vec2::new(x as f32, y as f32);
-                    if !triangle_overlaps_box(uvs, texel_min, texel_min + Vec2::ONE) {
-                        continue;
-                    }
-                    let centre = texel_min + Vec2::splat(0.5);
-                    let (distance, _) = closest_barycentric(uvs, centre);
-                    let key = ((distance.to_bits() as u64) << 32) | triangle as u64;
-                    best[y as usize * width as usize + x as usize].fetch_min(key, Ordering::Relaxed);
+        triangle_uvs
+            .par_iter()
+            .enumerate()
+            .for_each(|(triangle, uvs)| {
+                if scene.mesh.area(triangle) <= 0.0 {
+                    return;
                 }
-            }
-        });
+                let lo = uvs[0].min(uvs[1]).min(uvs[2]).floor().max(Vec2::ZERO);
+                let hi = uvs[0].max(uvs[1]).max(uvs[2]).ceil();
+                let x_end = (hi.x as u32).min(width);
+                let y_end = (hi.y as u32).min(height);
+                for y in lo.y as u32..y_end {
+                    for x in lo.x as u32..x_end {
+                        let texel_min = Vec2::new(x as f32, y as f32);
+                        if !triangle_overlaps_box(uvs, texel_min, texel_min + Vec2::ONE) {
+                            continue;
+                        }
+                        let centre = texel_min + Vec2::splat(0.5);
+                        let (distance, _) = closest_barycentric(uvs, centre);
+                        let key = ((distance.to_bits() as u64) << 32) | triangle as u64;
+                        best[y as usize * width as usize + x as usize]
+                            .fetch_min(key, Ordering::Relaxed);
+                    }
+                }
+            });
         let mut receiver_of_texel = vec![EMPTY; texel_count];
         let mut receivers = Receivers::default();
         for (texel, key) in best.iter().enumerate() {
@@ -255,10 +248,14 @@ impl Atlas {
             receiver_of_texel[texel] = receivers.len() as u32;
             receivers.texels.push([x, y]);
             receivers.positions.push(position);
-            receivers.normals.push(scene.mesh.geometric_normal(triangle));
+            receivers
+                .normals
+                .push(scene.mesh.geometric_normal(triangle));
             receivers.triangles.push(triangle as u32);
             receivers.barycentrics.push(barycentric);
-            receivers.albedos.push(scene.albedo_at(triangle, barycentric));
+            receivers
+                .albedos
+                .push(scene.albedo_at(triangle, barycentric));
         }
         let dilation = dilation_list(width, height, &receiver_of_texel, &receivers, &triangle_uvs);
         Self {
@@ -366,10 +363,15 @@ fn grow_charts(scene: &Scene) -> Vec<Chart> {
         for corner in 0..3 {
             let a = vertex_id[corners[corner] as usize];
             let b = vertex_id[corners[(corner + 1) % 3] as usize];
-            edge_triangles.entry((a.min(b), a.max(b))).or_default().push(triangle as u32);
+            edge_triangles
+                .entry((a.min(b), a.max(b)))
+                .or_default()
+                .push(triangle as u32);
         }
     }
-    let normals: Vec<Vec3> = (0..triangle_count).map(|t| mesh.geometric_normal(t)).collect();
+    let normals: Vec<Vec3> = (0..triangle_count)
+        .map(|t| mesh.geometric_normal(t))
+        .collect();
     let mut chart_of = vec![u32::MAX; triangle_count];
     let mut charts = Vec::new();
     let mut stack = Vec::new();
@@ -447,11 +449,76 @@ fn chart_axes(scene: &Scene, members: &[u32], normal: Vec3) -> (Vec3, Vec3) {
     (best.1, normal.cross(best.1))
 }
 
+/// Finds the smallest texel size whose packing fits a `resolution` square:
+/// geometric growth from the perfect-packing bound, then bisection.
+#[allow(clippy::type_complexity)]
+fn fit_resolution(
+    scene: &Scene,
+    charts: &[Chart],
+    resolution: u32,
+) -> Result<(f32, (u32, u32, Vec<[Vec2; 3]>)), SceneError> {
+    // Every chart costs at least its gutter ring, whatever the texel size.
+    let gutter_bound = (charts.len() as f64).sqrt() * (2 * GUTTER_TEXELS + 2) as f64;
+    if gutter_bound > resolution as f64 {
+        return Err(SceneError::Invalid {
+            path: scene.source.clone(),
+            message: format!(
+                "a {resolution}x{resolution} lightmap cannot hold this scene's {} charts with their gutters: \
+                 use a lightmap resolution of at least {}",
+                charts.len(),
+                (gutter_bound * 1.5).ceil() as u32
+            ),
+        });
+    }
+    let fits = |metres: f32| {
+        let packed = pack_charts(scene, charts, metres, Some(resolution));
+        (packed.0.max(packed.1) <= resolution, packed)
+    };
+    let total_area = scene.mesh.total_area().max(1e-12) as f32;
+    let mut too_small = (total_area / (resolution as f32).powi(2)).sqrt();
+    let (first_fits, first) = fits(too_small);
+    if first_fits {
+        return Ok((too_small, first));
+    }
+    let mut large_enough = too_small;
+    let mut packed = loop {
+        large_enough *= 1.5;
+        let (ok, packed) = fits(large_enough);
+        if ok {
+            break packed;
+        }
+        if large_enough > too_small * 1e6 {
+            return Err(SceneError::Invalid {
+                path: scene.source.clone(),
+                message: format!("no texel size fits a {resolution}x{resolution} lightmap: raise the lightmap resolution"),
+            });
+        }
+        too_small = large_enough;
+    };
+    // Bisection to within 1 % of the smallest texel size that fits.
+    while large_enough / too_small > 1.01 {
+        let middle = (too_small * large_enough).sqrt();
+        let (ok, candidate) = fits(middle);
+        if ok {
+            large_enough = middle;
+            packed = candidate;
+        } else {
+            too_small = middle;
+        }
+    }
+    Ok((large_enough, packed))
+}
+
 /// Projects charts at `metres_per_texel` and shelf-packs them; returns the
 /// atlas size and every triangle's texel-space UVs.
 /// `shelf_width` fixes the atlas width (a target resolution); otherwise the
 /// width is chosen for a roughly square atlas.
-fn pack_charts(scene: &Scene, charts: &[Chart], metres_per_texel: f32, shelf_width: Option<u32>) -> (u32, u32, Vec<[Vec2; 3]>) {
+fn pack_charts(
+    scene: &Scene,
+    charts: &[Chart],
+    metres_per_texel: f32,
+    shelf_width: Option<u32>,
+) -> (u32, u32, Vec<[Vec2; 3]>) {
     let mut triangle_uvs = vec![[Vec2::ZERO; 3]; scene.mesh.triangles.len()];
     // Project each chart into its own texel frame with origin at its minimum.
     let mut sizes = Vec::with_capacity(charts.len());
@@ -481,10 +548,19 @@ fn pack_charts(scene: &Scene, charts: &[Chart], metres_per_texel: f32, shelf_wid
     }
     let total_area: f64 = sizes.iter().map(|s| s.x as f64 * s.y as f64).sum();
     let widest = sizes.iter().map(|s| s.x).max().unwrap_or(1);
-    let width = shelf_width.unwrap_or((total_area.sqrt() * 1.05).ceil() as u32).max(widest).max(8);
+    let width = shelf_width
+        .unwrap_or((total_area.sqrt() * 1.05).ceil() as u32)
+        .max(widest)
+        .max(8);
     // Shelf packing, tallest first; ties broken by chart index for determinism.
     let mut order: Vec<usize> = (0..charts.len()).collect();
-    order.sort_by(|&a, &b| sizes[b].y.cmp(&sizes[a].y).then(sizes[b].x.cmp(&sizes[a].x)).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        sizes[b]
+            .y
+            .cmp(&sizes[a].y)
+            .then(sizes[b].x.cmp(&sizes[a].x))
+            .then(a.cmp(&b))
+    });
     let (mut cursor_x, mut shelf_y, mut shelf_height) = (0u32, 0u32, 0u32);
     for index in order {
         let size = sizes[index];
@@ -493,7 +569,8 @@ fn pack_charts(scene: &Scene, charts: &[Chart], metres_per_texel: f32, shelf_wid
             cursor_x = 0;
             shelf_height = 0;
         }
-        let offset = Vec2::new(cursor_x as f32, shelf_y as f32) + Vec2::splat(GUTTER_TEXELS as f32 + 0.5);
+        let offset =
+            Vec2::new(cursor_x as f32, shelf_y as f32) + Vec2::splat(GUTTER_TEXELS as f32 + 0.5);
         for &triangle in &charts[index].triangles {
             for uv in &mut triangle_uvs[triangle as usize] {
                 *uv += offset;
@@ -562,7 +639,12 @@ fn dilation_list(
 
 /// Calls `visit` with the index of every texel whose centre lies inside the
 /// triangle (used for the overlap test of mesh-provided UVs).
-fn for_each_texel_centre_inside(uvs: &[Vec2; 3], width: u32, height: u32, mut visit: impl FnMut(u32)) {
+fn for_each_texel_centre_inside(
+    uvs: &[Vec2; 3],
+    width: u32,
+    height: u32,
+    mut visit: impl FnMut(u32),
+) {
     let lo = uvs[0].min(uvs[1]).min(uvs[2]).floor().max(Vec2::ZERO);
     let hi = uvs[0].max(uvs[1]).max(uvs[2]).ceil();
     for y in lo.y as u32..(hi.y as u32).min(height) {
@@ -648,7 +730,10 @@ fn triangle_overlaps_box(uvs: &[Vec2; 3], box_min: Vec2, box_max: Vec2) -> bool 
             continue;
         }
         // Separated when every box corner is strictly on the far side.
-        if corners.iter().all(|corner| axis.dot(*corner - start) * side < 0.0) {
+        if corners
+            .iter()
+            .all(|corner| axis.dot(*corner - start) * side < 0.0)
+        {
             return false;
         }
     }
@@ -691,13 +776,19 @@ mod tests {
         // Each 1 m quad at 5 cm per texel covers 20x20 texels; conservative
         // rasterisation may add one ring (22x22) but never less than 20x20.
         let per_chart = atlas.receivers.len() / 2;
-        assert!((400..=484).contains(&per_chart), "{per_chart} texels per chart");
+        assert!(
+            (400..=484).contains(&per_chart),
+            "{per_chart} texels per chart"
+        );
         for index in 0..atlas.receivers.len() {
             let receiver = atlas.receivers.get(index);
             let triangle_normal = scene.mesh.geometric_normal(receiver.triangle as usize);
             assert_eq!(receiver.normal, triangle_normal);
             // Receiver points lie on the quads (closest point clamps to them).
-            assert!(receiver.position.min_element() >= -1e-5 && receiver.position.max_element() <= 1.0 + 1e-5);
+            assert!(
+                receiver.position.min_element() >= -1e-5
+                    && receiver.position.max_element() <= 1.0 + 1e-5
+            );
         }
     }
 
@@ -705,11 +796,19 @@ mod tests {
     fn thin_triangle_still_gets_texels() {
         // A sliver 1 m long and 1 mm wide at 5 cm texels covers no texel centre.
         let mut scene = quad_scene(1.0);
-        scene.mesh.positions = vec![Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.5, 0.0, 0.001)];
+        scene.mesh.positions = vec![
+            Vec3::ZERO,
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.5, 0.0, 0.001),
+        ];
         scene.mesh.triangles = vec![[0, 2, 1]];
         scene.mesh.material_ids = vec![0];
         let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.05)).unwrap();
-        assert!(atlas.receivers.len() >= 20, "only {} texels", atlas.receivers.len());
+        assert!(
+            atlas.receivers.len() >= 20,
+            "only {} texels",
+            atlas.receivers.len()
+        );
     }
 
     #[test]
@@ -726,7 +825,10 @@ mod tests {
                 for j in 0..=(steps - i) {
                     let barycentric = Vec2::new(i as f32 / steps as f32, j as f32 / steps as f32);
                     let value = atlas.sample(&lightmap, triangle, barycentric);
-                    assert!((value - Rgb::ONE).abs().max_element() < 1e-5, "{value} at {triangle} {barycentric}");
+                    assert!(
+                        (value - Rgb::ONE).abs().max_element() < 1e-5,
+                        "{value} at {triangle} {barycentric}"
+                    );
                 }
             }
         }
@@ -738,14 +840,33 @@ mod tests {
         let atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.1)).unwrap();
         // Chart of the floor is 1.0, chart of the wall is 2.0.
         let values: Vec<Rgb> = (0..atlas.receivers.len())
-            .map(|r| if atlas.receivers.normals[r].y.abs() > 0.5 { Rgb::ONE } else { Rgb::splat(2.0) })
+            .map(|r| {
+                if atlas.receivers.normals[r].y.abs() > 0.5 {
+                    Rgb::ONE
+                } else {
+                    Rgb::splat(2.0)
+                }
+            })
             .collect();
         let lightmap = atlas.to_lightmap(&values);
         for triangle in 0..4u32 {
-            let expected = if scene.mesh.geometric_normal(triangle as usize).y.abs() > 0.5 { 1.0 } else { 2.0 };
-            for barycentric in [Vec2::ZERO, Vec2::X, Vec2::Y, Vec2::splat(0.5), Vec2::splat(1.0 / 3.0)] {
+            let expected = if scene.mesh.geometric_normal(triangle as usize).y.abs() > 0.5 {
+                1.0
+            } else {
+                2.0
+            };
+            for barycentric in [
+                Vec2::ZERO,
+                Vec2::X,
+                Vec2::Y,
+                Vec2::splat(0.5),
+                Vec2::splat(1.0 / 3.0),
+            ] {
                 let value = atlas.sample(&lightmap, triangle, barycentric);
-                assert!((value.x - expected).abs() < 1e-5, "triangle {triangle} at {barycentric}: {value}");
+                assert!(
+                    (value.x - expected).abs() < 1e-5,
+                    "triangle {triangle} at {barycentric}: {value}"
+                );
             }
         }
     }
@@ -760,7 +881,11 @@ mod tests {
             // of border per axis, which dominates at 32; from 64 on at least a
             // quarter of the target's texels must be receivers.
             if target >= 64 {
-                assert!(atlas.receivers.len() as f64 > 0.25 * (target * target) as f64, "{target}: {}", atlas.receivers.len());
+                assert!(
+                    atlas.receivers.len() as f64 > 0.25 * (target * target) as f64,
+                    "{target}: {}",
+                    atlas.receivers.len()
+                );
             }
         }
     }
@@ -777,7 +902,14 @@ mod tests {
     fn overlapping_mesh_uvs_are_replaced() {
         let mut scene = quad_scene(1.0);
         // Every vertex at the same UV region: overlapping.
-        scene.mesh.lightmap_uvs = vec![Vec2::new(0.1, 0.1), Vec2::new(0.9, 0.1), Vec2::new(0.9, 0.9), Vec2::new(0.1, 0.9), Vec2::new(0.1, 0.9), Vec2::new(0.9, 0.9)];
+        scene.mesh.lightmap_uvs = vec![
+            Vec2::new(0.1, 0.1),
+            Vec2::new(0.9, 0.1),
+            Vec2::new(0.9, 0.9),
+            Vec2::new(0.1, 0.9),
+            Vec2::new(0.1, 0.9),
+            Vec2::new(0.9, 0.9),
+        ];
         let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(32)).unwrap();
         assert!(!atlas.from_mesh_uvs);
     }

@@ -190,8 +190,7 @@ impl Scene {
         match material.albedo_texture {
             Some(texture) if !self.mesh.texcoords.is_empty() => {
                 let [a, b, c] = self.mesh.triangles[triangle];
-                let uv = self.mesh.texcoords[a as usize]
-                    * (1.0 - barycentric.x - barycentric.y)
+                let uv = self.mesh.texcoords[a as usize] * (1.0 - barycentric.x - barycentric.y)
                     + self.mesh.texcoords[b as usize] * barycentric.x
                     + self.mesh.texcoords[c as usize] * barycentric.y;
                 material.albedo * self.textures[texture as usize].sample(uv)

@@ -42,12 +42,16 @@ pub(crate) fn load_obj(path: &Path) -> Result<LoadedMesh, SceneError> {
 
     let folder = path.parent().unwrap_or(Path::new("")).to_path_buf();
     let libraries = RefCell::new(MaterialLibraries::default());
-    let options = tobj::LoadOptions {
-        single_index: true,
-        triangulate: true,
-        ignore_points: true,
-        ignore_lines: true,
-        ..Default::default()
+    // Field by field, so that tobj features enabled elsewhere in the
+    // workspace (which add fields) cannot break this.
+    #[allow(clippy::field_reassign_with_default)]
+    let options = {
+        let mut options = tobj::LoadOptions::default();
+        options.single_index = true;
+        options.triangulate = true;
+        options.ignore_points = true;
+        options.ignore_lines = true;
+        options
     };
     let loaded = tobj::load_obj_buf(&mut text.as_bytes(), &options, |library: &Path| {
         libraries.borrow_mut().load(path, &folder, library)

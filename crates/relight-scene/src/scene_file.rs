@@ -163,7 +163,7 @@ impl TextSource<'_> {
             None => Vec3::Y,
         };
         let forward = target - eye;
-        if !(forward.length() > 1e-9) {
+        if forward.length_squared() <= 1e-18 {
             return Err(self.error_at(&raw.target, "`camera.target` must differ from `camera.eye`"));
         }
         if forward.normalize().cross(up).length() < 1e-6 {
@@ -224,12 +224,14 @@ impl TextSource<'_> {
                     "outer_angle",
                 ],
             ),
-            other => return Err(self.error_at(
-                &raw.kind,
-                format!(
+            other => {
+                return Err(self.error_at(
+                    &raw.kind,
+                    format!(
                     "unknown light kind \"{other}\": use \"point\", \"directional\" or \"spot\""
                 ),
-            )),
+                ))
+            }
         };
         let present: [(&str, Option<std::ops::Range<usize>>); 6] = [
             ("position", raw.position.as_ref().map(Spanned::span)),
@@ -282,7 +284,8 @@ impl TextSource<'_> {
                 let inner = raw.inner_angle.as_ref().ok_or_else(missing)?;
                 let outer = raw.outer_angle.as_ref().ok_or_else(missing)?;
                 let (inner_degrees, outer_degrees) = (*inner.get_ref(), *outer.get_ref());
-                if !(0.0..=90.0).contains(&outer_degrees) || !(outer_degrees > 0.0) {
+                let outer_valid = outer_degrees > 0.0 && outer_degrees <= 90.0;
+                if !outer_valid {
                     return Err(self.error_at(
                         outer,
                         format!("`outer_angle` is {outer_degrees}: use a half-angle in degrees, above 0 and at most 90"),

@@ -66,7 +66,7 @@ fn mutate(original: &[u8], rng: &mut Pcg32) -> Vec<u8> {
                     if index == line && duplicate {
                         rebuilt.extend(*text);
                         rebuilt.extend(*text);
-                    } else if index != line || !duplicate && rng.next_u32() % 2 == 0 {
+                    } else if index != line || !duplicate && rng.next_u32().is_multiple_of(2) {
                         rebuilt.extend(*text);
                     }
                 }

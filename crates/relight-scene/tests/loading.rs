@@ -479,6 +479,9 @@ fn corrupt_texture_is_an_error() {
 
 // ---------------------------------------------------------------- glTF
 
+/// One corruption of the fixture glTF JSON.
+type JsonEdit = Box<dyn Fn(&mut serde_json::Value)>;
+
 fn write_gltf(dir: &TempDir, json: &serde_json::Value) -> std::path::PathBuf {
     dir.write("quad.bin", quad_binary());
     dir.write("quad.gltf", serde_json::to_vec_pretty(json).unwrap());
@@ -624,7 +627,7 @@ fn gltf_uris_outside_the_folder_are_refused() {
 
 #[test]
 fn gltf_absurd_sizes_are_refused() {
-    let mutations: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>)> = vec![
+    let mutations: Vec<(&str, JsonEdit)> = vec![
         (
             "more bytes than",
             Box::new(|json| json["accessors"][0]["count"] = json!(1_000_000_000_000u64)),
@@ -703,7 +706,7 @@ fn gltf_node_cycles_are_errors() {
 
 #[test]
 fn gltf_light_values_are_validated() {
-    let mutations: Vec<Box<dyn Fn(&mut serde_json::Value)>> = vec![
+    let mutations: Vec<JsonEdit> = vec![
         Box::new(|json| {
             json["extensions"]["KHR_lights_punctual"]["lights"][0]["intensity"] = json!(-1.0)
         }),

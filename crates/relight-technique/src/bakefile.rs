@@ -46,7 +46,12 @@ pub fn scene_fingerprint(scene: &Scene, atlas: &Atlas) -> u64 {
         feed(&id.to_le_bytes());
     }
     for material in &scene.materials {
-        for value in material.albedo.to_array().into_iter().chain(material.emission.to_array()) {
+        for value in material
+            .albedo
+            .to_array()
+            .into_iter()
+            .chain(material.emission.to_array())
+        {
             feed(&value.to_le_bytes());
         }
     }
@@ -72,8 +77,15 @@ fn encode(header: &BakeHeader, payload: &[u8]) -> Vec<u8> {
 }
 
 /// Writes a bake file atomically: temporary sibling, fsync, rename.
-pub fn write_bake_atomic(path: &Path, header: &BakeHeader, payload: &[u8]) -> Result<(), TechniqueError> {
-    let io_error = |source| TechniqueError::Io { path: path.to_path_buf(), source };
+pub fn write_bake_atomic(
+    path: &Path,
+    header: &BakeHeader,
+    payload: &[u8],
+) -> Result<(), TechniqueError> {
+    let io_error = |source| TechniqueError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let file_name = path.file_name().ok_or_else(|| TechniqueError::BakeFile {
         path: path.to_path_buf(),
         message: "the output path names no file: give a file name such as scene.bake".into(),
@@ -95,7 +107,10 @@ pub fn write_bake_atomic(path: &Path, header: &BakeHeader, payload: &[u8]) -> Re
 
 /// Reads and verifies a bake file; returns its header and payload.
 pub fn read_bake(path: &Path) -> Result<(BakeHeader, Vec<u8>), TechniqueError> {
-    let bytes = std::fs::read(path).map_err(|source| TechniqueError::Io { path: path.to_path_buf(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| TechniqueError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
     decode(path, &bytes)
 }
 
@@ -113,24 +128,32 @@ fn decode(path: &Path, bytes: &[u8]) -> Result<(BakeHeader, Vec<u8>), TechniqueE
     let (body, checksum_bytes) = bytes.split_at(bytes.len() - 4);
     let stored = u32::from_le_bytes(checksum_bytes.try_into().expect("4 bytes"));
     if crc32fast::hash(body) != stored {
-        return Err(invalid("checksum mismatch: the file is corrupt or was cut short"));
+        return Err(invalid(
+            "checksum mismatch: the file is corrupt or was cut short",
+        ));
     }
     let mut cursor = 8usize;
     let mut take = |count: usize| -> Result<&[u8], TechniqueError> {
-        let slice = body.get(cursor..cursor + count).ok_or_else(|| invalid("truncated bake file"))?;
+        let slice = body
+            .get(cursor..cursor + count)
+            .ok_or_else(|| invalid("truncated bake file"))?;
         cursor += count;
         Ok(slice)
     };
     let format = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
     if format != BAKE_FORMAT_VERSION {
-        return Err(invalid(&format!("bake format version {format}, this relight reads {BAKE_FORMAT_VERSION}")));
+        return Err(invalid(&format!(
+            "bake format version {format}, this relight reads {BAKE_FORMAT_VERSION}"
+        )));
     }
     let name_length = u16::from_le_bytes(take(2)?.try_into().expect("2 bytes")) as usize;
-    let technique = String::from_utf8(take(name_length)?.to_vec()).map_err(|_| invalid("technique name is not UTF-8"))?;
+    let technique = String::from_utf8(take(name_length)?.to_vec())
+        .map_err(|_| invalid("technique name is not UTF-8"))?;
     let payload_version = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
     let scene_fingerprint = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
     let payload_length = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
-    let payload_length = usize::try_from(payload_length).map_err(|_| invalid("payload length too large"))?;
+    let payload_length =
+        usize::try_from(payload_length).map_err(|_| invalid("payload length too large"))?;
     let payload = take(payload_length)?.to_vec();
     Ok((
         BakeHeader {

@@ -2,7 +2,10 @@
 //! `reference` (path-traced indirect light per lightmap receiver).
 
 use crate::params::parse_params;
-use crate::{Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError, TechniqueKind};
+use crate::{
+    Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint, Technique,
+    TechniqueError, TechniqueKind,
+};
 use glam::Vec3;
 use relight_core::sampling::SampleStream;
 use relight_core::Rgb;
@@ -67,7 +70,12 @@ impl Technique for DirectOnly {
         let lightmap = &mut self.direct_lightmap;
         self.timings.time("direct lightmap", || {
             let receivers = &context.atlas.receivers;
-            context.direct().irradiance_batch(frame.lights, &receivers.positions, &receivers.normals, lightmap);
+            context.direct().irradiance_batch(
+                frame.lights,
+                &receivers.positions,
+                &receivers.normals,
+                lightmap,
+            );
         });
         Ok(())
     }
@@ -84,7 +92,10 @@ impl Technique for DirectOnly {
         &self.timings
     }
     fn memory(&self) -> Vec<MemoryEntry> {
-        vec![MemoryEntry::new("direct lightmap", self.direct_lightmap.len() * 12)]
+        vec![MemoryEntry::new(
+            "direct lightmap",
+            self.direct_lightmap.len() * 12,
+        )]
     }
 }
 
@@ -142,11 +153,19 @@ pub fn reference_receiver_irradiance(
         let this_pass = pass.min(samples - done);
         let mut pass_sums = vec![[0.0f64; 3]; count];
         for sample in done..done + this_pass {
-            tracer.indirect_irradiance_sums(lights, &receivers.positions, &receivers.normals, sample, 1, &mut pass_sums);
+            tracer.indirect_irradiance_sums(
+                lights,
+                &receivers.positions,
+                &receivers.normals,
+                sample,
+                1,
+                &mut pass_sums,
+            );
             for index in 0..count {
                 for channel in 0..3 {
                     sums[index][channel] += pass_sums[index][channel];
-                    squares[index][channel] += pass_sums[index][channel] * pass_sums[index][channel];
+                    squares[index][channel] +=
+                        pass_sums[index][channel] * pass_sums[index][channel];
                 }
                 pass_sums[index] = [0.0; 3];
             }
@@ -160,11 +179,16 @@ pub fn reference_receiver_irradiance(
     for index in 0..count {
         let mean: [f64; 3] = std::array::from_fn(|c| sums[index][c] / n);
         let error: [f64; 3] = std::array::from_fn(|c| {
-            let variance = (squares[index][c] / n - mean[c] * mean[c]).max(0.0) * n / (n - 1.0).max(1.0);
+            let variance =
+                (squares[index][c] / n - mean[c] * mean[c]).max(0.0) * n / (n - 1.0).max(1.0);
             (variance / n).sqrt()
         });
-        result.mean.push(Rgb::new(mean[0] as f32, mean[1] as f32, mean[2] as f32));
-        result.standard_error.push(Rgb::new(error[0] as f32, error[1] as f32, error[2] as f32));
+        result
+            .mean
+            .push(Rgb::new(mean[0] as f32, mean[1] as f32, mean[2] as f32));
+        result
+            .standard_error
+            .push(Rgb::new(error[0] as f32, error[1] as f32, error[2] as f32));
     }
     result
 }
@@ -231,23 +255,45 @@ impl Technique for Reference {
         let samples = self.params.samples;
         let context = &self.context;
         let values = self.timings.time("path tracing", || {
-            reference_receiver_irradiance(context, frame.lights, settings, samples, &crate::NoProgress).mean
+            reference_receiver_irradiance(
+                context,
+                frame.lights,
+                settings,
+                samples,
+                &crate::NoProgress,
+            )
+            .mean
         });
-        self.lightmap = self.timings.time("dilation", || context.atlas.to_lightmap(&values));
+        self.lightmap = self
+            .timings
+            .time("dilation", || context.atlas.to_lightmap(&values));
         self.receiver_values = values;
         Ok(())
     }
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        self.context.atlas.sample(&self.lightmap, point.triangle, point.barycentric)
+        self.context
+            .atlas
+            .sample(&self.lightmap, point.triangle, point.barycentric)
     }
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
         let direct = self.context.direct();
         let tracer = PathTracer::new(&direct, self.path_settings());
-        let key = relight_core::sampling::mix64(position.x.to_bits() as u64 ^ ((position.y.to_bits() as u64) << 21) ^ ((position.z.to_bits() as u64) << 42));
+        let key = relight_core::sampling::mix64(
+            position.x.to_bits() as u64
+                ^ ((position.y.to_bits() as u64) << 21)
+                ^ ((position.z.to_bits() as u64) << 42),
+        );
         let mut sum = Rgb::ZERO;
         for sample in 0..self.params.space_samples {
             let mut rng = SampleStream::new(self.params.seed, key, sample as u64);
-            sum += tracer.indirect_irradiance_sample(&self.lights, position, normal, 0, &mut rng, key ^ sample as u64);
+            sum += tracer.indirect_irradiance_sample(
+                &self.lights,
+                position,
+                normal,
+                0,
+                &mut rng,
+                key ^ sample as u64,
+            );
         }
         sum / self.params.space_samples.max(1) as f32
     }

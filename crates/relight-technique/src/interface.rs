@@ -100,7 +100,12 @@ pub trait Technique: Send + Sync {
 
     /// Indirect radiance leaving a glossy (Blinn-Phong) surface toward the
     /// viewer, when the technique models glossy transport.
-    fn glossy_radiance(&self, _point: &SurfacePoint, _toward_viewer: Vec3, _exponent: f32) -> Option<Rgb> {
+    fn glossy_radiance(
+        &self,
+        _point: &SurfacePoint,
+        _toward_viewer: Vec3,
+        _exponent: f32,
+    ) -> Option<Rgb> {
         None
     }
 

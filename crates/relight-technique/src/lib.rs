@@ -18,8 +18,12 @@ mod context;
 mod interface;
 mod params;
 
-pub use bakefile::{read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC};
-pub use builtin::{reference_receiver_irradiance, DirectKind, ReferenceKind, ReferenceLightmap, ReferenceParams};
+pub use bakefile::{
+    read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,
+};
+pub use builtin::{
+    reference_receiver_irradiance, DirectKind, ReferenceKind, ReferenceLightmap, ReferenceParams,
+};
 pub use context::{ContextSettings, SceneContext};
 pub use interface::*;
 pub use params::{parse_params, ParamError};

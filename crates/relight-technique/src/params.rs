@@ -23,7 +23,10 @@ pub fn parse_params<T: DeserializeOwned + serde::Serialize>(
     for (key, raw) in pairs {
         if !table.contains_key(key) {
             let known: Vec<&str> = table.keys().map(String::as_str).collect();
-            return Err(error(format!("unknown key '{key}'; known keys: {}", known.join(", "))));
+            return Err(error(format!(
+                "unknown key '{key}'; known keys: {}",
+                known.join(", ")
+            )));
         }
         let value = toml::from_str::<toml::Table>(&format!("value = {raw}"))
             .ok()
@@ -49,9 +52,28 @@ mod tests {
 
     #[test]
     fn values_override_defaults_and_typos_fail() {
-        let defaults = Example { samples: 4, clamp: 1.0, mode: "fast".into() };
-        let parsed = parse_params("x", &defaults, &[("samples".into(), "16".into()), ("mode".into(), "slow".into())]).unwrap();
-        assert_eq!(parsed, Example { samples: 16, clamp: 1.0, mode: "slow".into() });
+        let defaults = Example {
+            samples: 4,
+            clamp: 1.0,
+            mode: "fast".into(),
+        };
+        let parsed = parse_params(
+            "x",
+            &defaults,
+            &[
+                ("samples".into(), "16".into()),
+                ("mode".into(), "slow".into()),
+            ],
+        )
+        .unwrap();
+        assert_eq!(
+            parsed,
+            Example {
+                samples: 16,
+                clamp: 1.0,
+                mode: "slow".into()
+            }
+        );
         let typo = parse_params("x", &defaults, &[("sampels".into(), "16".into())]).unwrap_err();
         assert!(typo.to_string().contains("sampels") && typo.to_string().contains("samples"));
         let wrong_type = parse_params("x", &defaults, &[("samples".into(), "many".into())]);

@@ -33,7 +33,11 @@ fn thread_cpu_seconds() -> f64 {
 }
 
 /// Minimum over `repeats` of thread CPU nanoseconds per ray.
-fn cpu_nanoseconds_per_ray(rays: &[Ray], repeats: usize, mut trace: impl FnMut(&Ray) -> bool) -> f64 {
+fn cpu_nanoseconds_per_ray(
+    rays: &[Ray],
+    repeats: usize,
+    mut trace: impl FnMut(&Ray) -> bool,
+) -> f64 {
     (0..repeats.max(1))
         .map(|_| {
             let start = thread_cpu_seconds();
@@ -44,18 +48,34 @@ fn cpu_nanoseconds_per_ray(rays: &[Ray], repeats: usize, mut trace: impl FnMut(&
         .fold(f64::INFINITY, f64::min)
 }
 
-fn cpu_time_report(positions: &[Vec3], triangles: &[[u32; 3]], light: Vec3, ray_count: usize, repeats: usize) {
+fn cpu_time_report(
+    positions: &[Vec3],
+    triangles: &[[u32; 3]],
+    light: Vec3,
+    ray_count: usize,
+    repeats: usize,
+) {
     let bvh = Bvh::build(positions, triangles);
     let rays = RaySets::generate(positions, triangles, light, ray_count, 1);
-    let occlusion: Vec<Ray> = rays.diffuse.iter().map(|ray| Ray { t_max: f32::INFINITY, ..*ray }).collect();
-    let closest = cpu_nanoseconds_per_ray(&rays.diffuse, repeats, |ray| bvh.intersect(ray).is_some());
+    let occlusion: Vec<Ray> = rays
+        .diffuse
+        .iter()
+        .map(|ray| Ray {
+            t_max: f32::INFINITY,
+            ..*ray
+        })
+        .collect();
+    let closest =
+        cpu_nanoseconds_per_ray(&rays.diffuse, repeats, |ray| bvh.intersect(ray).is_some());
     let occluded = cpu_nanoseconds_per_ray(&occlusion, repeats, |ray| bvh.occluded(ray));
     let shadow = cpu_nanoseconds_per_ray(&rays.shadow, repeats, |ray| bvh.occluded(ray));
     println!("single thread CPU ns/ray: closest {closest:.0}, occlusion {occluded:.0}, shadow {shadow:.0}");
     #[cfg(feature = "embree")]
     {
         let embree = relight_trace::bvh::EmbreeScene::build(positions, triangles);
-        let closest = cpu_nanoseconds_per_ray(&rays.diffuse, repeats, |ray| embree.intersect(ray).is_some());
+        let closest = cpu_nanoseconds_per_ray(&rays.diffuse, repeats, |ray| {
+            embree.intersect(ray).is_some()
+        });
         let occluded = cpu_nanoseconds_per_ray(&occlusion, repeats, |ray| embree.occluded(ray));
         let shadow = cpu_nanoseconds_per_ray(&rays.shadow, repeats, |ray| embree.occluded(ray));
         println!("Embree single thread CPU ns/ray: closest {closest:.0}, occlusion {occluded:.0}, shadow {shadow:.0}");
@@ -119,7 +139,13 @@ fn main() {
         };
         println!("== {path}");
         if std::env::var_os("RAYBENCH_CPU_TIME").is_some() {
-            cpu_time_report(&positions, &triangles, Vec3::from_array(light), ray_count, repeats);
+            cpu_time_report(
+                &positions,
+                &triangles,
+                Vec3::from_array(light),
+                ray_count,
+                repeats,
+            );
             continue;
         }
         let report = raybench::run(

@@ -62,8 +62,12 @@ impl Emitters {
             }
             running += power;
             emitters.triangles.push(triangle);
-            emitters.vertices.push(scene.mesh.vertices(triangle as usize));
-            emitters.normals.push(scene.mesh.geometric_normal(triangle as usize));
+            emitters
+                .vertices
+                .push(scene.mesh.vertices(triangle as usize));
+            emitters
+                .normals
+                .push(scene.mesh.geometric_normal(triangle as usize));
             emitters.areas.push(area);
             emitters.radiance.push(radiance);
             emitters.cdf.push(running as f32);
@@ -84,7 +88,10 @@ impl Emitters {
     /// Picks a triangle for `u` in [0,1) and returns (index, probability).
     #[inline]
     fn pick(&self, u: f32) -> (usize, f32) {
-        let index = self.cdf.partition_point(|&c| c <= u).min(self.cdf.len() - 1);
+        let index = self
+            .cdf
+            .partition_point(|&c| c <= u)
+            .min(self.cdf.len() - 1);
         let previous = if index == 0 { 0.0 } else { self.cdf[index - 1] };
         (index, self.cdf[index] - previous)
     }
@@ -113,7 +120,12 @@ pub fn ray_epsilon_for(bvh: &Bvh) -> f32 {
 impl<'a> DirectLight<'a> {
     /// `emitters` must come from [`Emitters::from_scene`] of the same scene;
     /// it is built once per scene, while a service is cheap to create.
-    pub fn new(scene: &'a Scene, bvh: &'a Bvh, emitters: &'a Emitters, settings: DirectSettings) -> Self {
+    pub fn new(
+        scene: &'a Scene,
+        bvh: &'a Bvh,
+        emitters: &'a Emitters,
+        settings: DirectSettings,
+    ) -> Self {
         Self {
             scene,
             bvh,
@@ -169,7 +181,7 @@ impl<'a> DirectLight<'a> {
             Light::Point {
                 position,
                 intensity,
-            } => self.from_point(origin, normal, position, intensity, 1.0),
+            } => self.point_light(origin, normal, position, intensity, 1.0),
             Light::Spot {
                 position,
                 direction,
@@ -178,11 +190,15 @@ impl<'a> DirectLight<'a> {
                 outer_angle,
             } => {
                 let to_point = (origin - position).normalize_or_zero();
-                let falloff = spot_falloff(to_point.dot(direction.normalize_or_zero()), inner_angle, outer_angle);
+                let falloff = spot_falloff(
+                    to_point.dot(direction.normalize_or_zero()),
+                    inner_angle,
+                    outer_angle,
+                );
                 if falloff <= 0.0 {
                     return Rgb::ZERO;
                 }
-                self.from_point(origin, normal, position, intensity, falloff)
+                self.point_light(origin, normal, position, intensity, falloff)
             }
             Light::Directional {
                 direction,
@@ -208,7 +224,14 @@ impl<'a> DirectLight<'a> {
     }
 
     #[inline]
-    fn from_point(&self, origin: Vec3, normal: Vec3, position: Vec3, intensity: Rgb, scale: f32) -> Rgb {
+    fn point_light(
+        &self,
+        origin: Vec3,
+        normal: Vec3,
+        position: Vec3,
+        intensity: Rgb,
+        scale: f32,
+    ) -> Rgb {
         let offset = position - origin;
         let distance_squared = offset.length_squared();
         let cosine = normal.dot(offset);
@@ -244,7 +267,13 @@ impl<'a> DirectLight<'a> {
     /// Irradiance estimate of one point sample on emitter `index`, divided by
     /// nothing but the area pdf (1 / area).
     #[inline]
-    pub fn emitter_sample(&self, origin: Vec3, normal: Vec3, index: usize, barycentric: Vec2) -> Rgb {
+    pub fn emitter_sample(
+        &self,
+        origin: Vec3,
+        normal: Vec3,
+        index: usize,
+        barycentric: Vec2,
+    ) -> Rgb {
         let [a, b, c] = self.emitters.vertices[index];
         let light_point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
         let offset = light_point - origin;
@@ -374,7 +403,10 @@ mod tests {
             let cosine = 2.0 / distance_squared.sqrt();
             let expected = Rgb::new(4.0, 2.0, 1.0) * cosine / distance_squared;
             let got = service.irradiance(std::slice::from_ref(&light), point, Vec3::Y, 0);
-            assert!((got - expected).abs().max_element() < 1e-4 * expected.max_element(), "{got} vs {expected}");
+            assert!(
+                (got - expected).abs().max_element() < 1e-4 * expected.max_element(),
+                "{got} vs {expected}"
+            );
             // Below the floor the light is behind the surface.
             let below = service.irradiance(std::slice::from_ref(&light), point, -Vec3::Y, 0);
             assert_eq!(below, Rgb::ZERO);
@@ -392,8 +424,18 @@ mod tests {
             irradiance: Rgb::splat(3.0),
         };
         // Under the (non-emissive) square: shadowed; outside it: lit.
-        let shadowed = service.irradiance(std::slice::from_ref(&light), Vec3::new(0.0, 0.0, 0.0), Vec3::Y, 0);
-        let lit = service.irradiance(std::slice::from_ref(&light), Vec3::new(0.9, 0.0, 0.9), Vec3::Y, 0);
+        let shadowed = service.irradiance(
+            std::slice::from_ref(&light),
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::Y,
+            0,
+        );
+        let lit = service.irradiance(
+            std::slice::from_ref(&light),
+            Vec3::new(0.9, 0.0, 0.9),
+            Vec3::Y,
+            0,
+        );
         assert_eq!(shadowed, Rgb::ZERO);
         assert!((lit - Rgb::splat(3.0)).abs().max_element() < 1e-6);
     }
@@ -425,7 +467,11 @@ mod tests {
         let s = (half_size * half_size + height * height).sqrt();
         let expected = radiance.x * 4.0 * (half_size / s) * (half_size / s).atan();
         // 131k stratified samples of a smooth integrand: well under 0.5% error.
-        assert!((estimate.x - expected).abs() < 5e-3 * expected, "{} vs {expected}", estimate.x);
+        assert!(
+            (estimate.x - expected).abs() < 5e-3 * expected,
+            "{} vs {expected}",
+            estimate.x
+        );
     }
 
     #[test]

@@ -101,7 +101,11 @@ impl<'a> PathTracer<'a> {
             position,
             normal: if seen_from_front { front } else { -front },
             albedo: self.scene.albedo_at(triangle, hit.barycentric),
-            emitted: if seen_from_front { material.emission } else { Rgb::ZERO },
+            emitted: if seen_from_front {
+                material.emission
+            } else {
+                Rgb::ZERO
+            },
             triangle: hit.triangle,
         })
     }
@@ -160,7 +164,13 @@ impl<'a> PathTracer<'a> {
     }
 
     /// One camera-path sample along `ray`, split into direct and indirect.
-    pub fn camera_sample(&self, lights: &[Light], ray: &Ray, rng: &mut Pcg32, key: u64) -> RadianceSplit {
+    pub fn camera_sample(
+        &self,
+        lights: &[Light],
+        ray: &Ray,
+        rng: &mut Pcg32,
+        key: u64,
+    ) -> RadianceSplit {
         let Some(surface) = self.interact(ray) else {
             // Rays that leave the scene see the environment directly.
             return RadianceSplit {
@@ -169,12 +179,27 @@ impl<'a> PathTracer<'a> {
             };
         };
         let emitted = surface.emitted;
-        let irradiance = self.direct.irradiance(lights, surface.position, surface.normal, key ^ rng.next_u32() as u64);
+        let irradiance = self.direct.irradiance(
+            lights,
+            surface.position,
+            surface.normal,
+            key ^ rng.next_u32() as u64,
+        );
         let direct = emitted + surface.albedo * irradiance * std::f32::consts::FRAC_1_PI;
         if self.settings.max_bounces == 0 {
-            return RadianceSplit { direct, indirect: Rgb::ZERO };
+            return RadianceSplit {
+                direct,
+                indirect: Rgb::ZERO,
+            };
         }
-        let indirect_irradiance = self.indirect_irradiance_sample(lights, surface.position, surface.normal, surface.triangle, rng, key);
+        let indirect_irradiance = self.indirect_irradiance_sample(
+            lights,
+            surface.position,
+            surface.normal,
+            surface.triangle,
+            rng,
+            key,
+        );
         RadianceSplit {
             direct,
             indirect: surface.albedo * indirect_irradiance * std::f32::consts::FRAC_1_PI,
@@ -204,7 +229,9 @@ impl<'a> PathTracer<'a> {
         };
         match self.interact(&ray) {
             // pdf = cos/pi, integrand L cos: the estimate is pi L.
-            Some(next) => self.trace_from(lights, next, Rgb::splat(std::f32::consts::PI), 1, rng, key),
+            Some(next) => {
+                self.trace_from(lights, next, Rgb::splat(std::f32::consts::PI), 1, rng, key)
+            }
             None => Rgb::ZERO,
         }
     }
@@ -222,19 +249,29 @@ impl<'a> PathTracer<'a> {
         samples: u32,
         sums: &mut [[f64; 3]],
     ) {
-        sums.par_chunks_mut(64).enumerate().for_each(|(chunk, out)| {
-            for (offset, sum) in out.iter_mut().enumerate() {
-                let index = chunk * 64 + offset;
-                for sample in first_sample..first_sample + samples {
-                    let key = ((index as u64) << 20) ^ sample as u64;
-                    let mut rng = SampleStream::new(self.settings.seed, index as u64, sample as u64);
-                    let value = self.indirect_irradiance_sample(lights, positions[index], normals[index], 0, &mut rng, key);
-                    sum[0] += value.x as f64;
-                    sum[1] += value.y as f64;
-                    sum[2] += value.z as f64;
+        sums.par_chunks_mut(64)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                for (offset, sum) in out.iter_mut().enumerate() {
+                    let index = chunk * 64 + offset;
+                    for sample in first_sample..first_sample + samples {
+                        let key = ((index as u64) << 20) ^ sample as u64;
+                        let mut rng =
+                            SampleStream::new(self.settings.seed, index as u64, sample as u64);
+                        let value = self.indirect_irradiance_sample(
+                            lights,
+                            positions[index],
+                            normals[index],
+                            0,
+                            &mut rng,
+                            key,
+                        );
+                        sum[0] += value.x as f64;
+                        sum[1] += value.y as f64;
+                        sum[2] += value.z as f64;
+                    }
                 }
-            }
-        });
+            });
     }
 }
 
@@ -293,10 +330,23 @@ mod tests {
     /// albedo and emission.
     fn closed_box(albedo: f32, emission: f32) -> Scene {
         let corners: Vec<Vec3> = (0..8)
-            .map(|i| Vec3::new(if i & 1 == 0 { -1.0 } else { 1.0 }, if i & 2 == 0 { -1.0 } else { 1.0 }, if i & 4 == 0 { -1.0 } else { 1.0 }))
+            .map(|i| {
+                Vec3::new(
+                    if i & 1 == 0 { -1.0 } else { 1.0 },
+                    if i & 2 == 0 { -1.0 } else { 1.0 },
+                    if i & 4 == 0 { -1.0 } else { 1.0 },
+                )
+            })
             .collect();
         // Quads as corner indices, wound counter-clockwise seen from inside.
-        let quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]];
+        let quads = [
+            [0, 1, 3, 2],
+            [4, 6, 7, 5],
+            [0, 4, 5, 1],
+            [2, 3, 7, 6],
+            [0, 2, 6, 4],
+            [1, 5, 7, 3],
+        ];
         let mut triangles = Vec::new();
         for quad in quads {
             triangles.push([quad[0], quad[1], quad[2]]);
@@ -325,7 +375,10 @@ mod tests {
         for triangle in 0..scene.mesh.triangles.len() {
             let [a, b, c] = scene.mesh.vertices(triangle);
             let centre = (a + b + c) / 3.0;
-            assert!(scene.mesh.geometric_normal(triangle).dot(centre) < 0.0, "triangle {triangle} faces out");
+            assert!(
+                scene.mesh.geometric_normal(triangle).dot(centre) < 0.0,
+                "triangle {triangle} faces out"
+            );
         }
     }
 
@@ -337,13 +390,31 @@ mod tests {
         let scene = closed_box(albedo, emission);
         let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
         let emitters = crate::direct::Emitters::from_scene(&scene);
-        let direct = DirectLight::new(&scene, &bvh, &emitters, DirectSettings { area_light_samples: 8, ..Default::default() });
-        let tracer = PathTracer::new(&direct, PathSettings { area_light_samples: 8, ..Default::default() });
+        let direct = DirectLight::new(
+            &scene,
+            &bvh,
+            &emitters,
+            DirectSettings {
+                area_light_samples: 8,
+                ..Default::default()
+            },
+        );
+        let tracer = PathTracer::new(
+            &direct,
+            PathSettings {
+                area_light_samples: 8,
+                ..Default::default()
+            },
+        );
         let mut sum = 0.0f64;
         let samples = 20_000u32;
         for sample in 0..samples {
             let mut rng = SampleStream::new(7, 0, sample as u64);
-            let ray = Ray { origin: Vec3::new(0.1, 0.2, -0.3), direction: relight_core::sampling::uniform_sphere(rng.next_vec2()), t_max: f32::INFINITY };
+            let ray = Ray {
+                origin: Vec3::new(0.1, 0.2, -0.3),
+                direction: relight_core::sampling::uniform_sphere(rng.next_vec2()),
+                t_max: f32::INFINITY,
+            };
             let split = tracer.camera_sample(&[], &ray, &mut rng, sample as u64);
             sum += (split.direct + split.indirect).x as f64;
         }
@@ -351,7 +422,10 @@ mod tests {
         let expected = emission as f64 / (1.0 - albedo as f64);
         // Per-sample standard deviation is about 0.5 here; 20k samples give a
         // standard error near 0.004: a 1.5% bound is over 5 sigma.
-        assert!((estimate - expected).abs() < 0.015 * expected, "{estimate} vs {expected}");
+        assert!(
+            (estimate - expected).abs() < 0.015 * expected,
+            "{estimate} vs {expected}"
+        );
     }
 
     #[test]
@@ -361,14 +435,33 @@ mod tests {
         let scene = closed_box(1.0, 1.0);
         let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
         let emitters = crate::direct::Emitters::from_scene(&scene);
-        let direct = DirectLight::new(&scene, &bvh, &emitters, DirectSettings { area_light_samples: 8, ..Default::default() });
+        let direct = DirectLight::new(
+            &scene,
+            &bvh,
+            &emitters,
+            DirectSettings {
+                area_light_samples: 8,
+                ..Default::default()
+            },
+        );
         for max_bounces in [0u32, 2, 5] {
-            let tracer = PathTracer::new(&direct, PathSettings { max_bounces, area_light_samples: 8, ..Default::default() });
+            let tracer = PathTracer::new(
+                &direct,
+                PathSettings {
+                    max_bounces,
+                    area_light_samples: 8,
+                    ..Default::default()
+                },
+            );
             let mut sum = 0.0f64;
             let samples = 4000u32;
             for sample in 0..samples {
                 let mut rng = SampleStream::new(3, 1, sample as u64);
-                let ray = Ray { origin: Vec3::ZERO, direction: relight_core::sampling::uniform_sphere(rng.next_vec2()), t_max: f32::INFINITY };
+                let ray = Ray {
+                    origin: Vec3::ZERO,
+                    direction: relight_core::sampling::uniform_sphere(rng.next_vec2()),
+                    t_max: f32::INFINITY,
+                };
                 let split = tracer.camera_sample(&[], &ray, &mut rng, sample as u64);
                 sum += (split.direct + split.indirect).x as f64;
             }
@@ -377,7 +470,10 @@ mod tests {
             let expected = 2.0 + max_bounces as f64;
             // Each term is an NEE estimate of an exactly-1 irradiance/pi with
             // 8 stratified samples; its noise is small: 2% bound.
-            assert!((estimate - expected).abs() < 0.02 * expected, "bounces {max_bounces}: {estimate} vs {expected}");
+            assert!(
+                (estimate - expected).abs() < 0.02 * expected,
+                "bounces {max_bounces}: {estimate} vs {expected}"
+            );
         }
     }
 
@@ -388,10 +484,15 @@ mod tests {
         let emitters = crate::direct::Emitters::from_scene(&scene);
         let direct = DirectLight::new(&scene, &bvh, &emitters, DirectSettings::default());
         let tracer = PathTracer::new(&direct, PathSettings::default());
-        let positions: Vec<Vec3> = (0..300).map(|i| Vec3::new(-1.0, (i as f32 / 300.0) * 1.8 - 0.9, 0.1)).collect();
+        let positions: Vec<Vec3> = (0..300)
+            .map(|i| Vec3::new(-1.0, (i as f32 / 300.0) * 1.8 - 0.9, 0.1))
+            .collect();
         let normals = vec![Vec3::X; positions.len()];
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
             let mut sums = vec![[0.0f64; 3]; positions.len()];
             pool.install(|| {
                 tracer.indirect_irradiance_sums(&[], &positions, &normals, 0, 3, &mut sums);
@@ -401,7 +502,10 @@ mod tests {
         };
         let one = run(1);
         let two = run(2);
-        assert!(one.iter().zip(&two).all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())));
+        assert!(one
+            .iter()
+            .zip(&two)
+            .all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())));
     }
 
     #[test]

@@ -12,7 +12,8 @@
 //!    stopping just short of the light.
 //!
 //! Each set is traced through the batch methods (all rayon threads) once to
-//! warm caches, then `repeats` times; the median rate is reported. Build time
+//! warm caches, then `repeats` times, BVH and Embree alternating so both see
+//! the same machine load; the median rate is reported. Build time
 //! is the median of [`BUILD_REPEATS`] builds.
 
 use crate::bvh::{Bvh, Hit, Ray};
@@ -174,19 +175,6 @@ impl RaySets {
     }
 }
 
-/// Times `trace` `repeats` times after one warm-up; median Mrays/s.
-fn rate(ray_count: usize, repeats: usize, mut trace: impl FnMut()) -> f64 {
-    trace();
-    let rates = (0..repeats.max(1))
-        .map(|_| {
-            let start = Instant::now();
-            trace();
-            ray_count as f64 / start.elapsed().as_secs_f64() / 1e6
-        })
-        .collect();
-    median(rates)
-}
-
 fn time_builds<T>(mut build: impl FnMut() -> T) -> (f64, T) {
     let mut durations = Vec::new();
     let mut built = None;
@@ -230,10 +218,16 @@ struct Traced {
     shadow_occluded: Vec<bool>,
 }
 
-fn measure(tracer: &impl BatchTracer, rays: &RaySets, repeats: usize) -> Traced {
-    let mut diffuse_hits = vec![None; rays.diffuse.len()];
-    let mut diffuse_occluded = vec![false; rays.diffuse.len()];
-    let mut shadow_occluded = vec![false; rays.shadow.len()];
+fn seconds(work: impl FnOnce()) -> f64 {
+    let start = Instant::now();
+    work();
+    start.elapsed().as_secs_f64()
+}
+
+/// Traces every ray set with every tracer: one warm-up pass, then
+/// `repeats` passes, the tracers interleaved within each pass so that load
+/// from other processes affects them alike. Rates are medians in Mrays/s.
+fn measure(tracers: &[&dyn BatchTracer], rays: &RaySets, repeats: usize) -> Vec<Traced> {
     let diffuse_occlusion_rays: Vec<Ray> = rays
         .diffuse
         .iter()
@@ -242,22 +236,40 @@ fn measure(tracer: &impl BatchTracer, rays: &RaySets, repeats: usize) -> Traced 
             ..*ray
         })
         .collect();
-    let rates = RayRates {
-        diffuse_closest_hit: rate(rays.diffuse.len(), repeats, || {
-            tracer.intersect_batch(&rays.diffuse, &mut diffuse_hits)
-        }),
-        diffuse_occlusion: rate(rays.diffuse.len(), repeats, || {
-            tracer.occluded_batch(&diffuse_occlusion_rays, &mut diffuse_occluded)
-        }),
-        coherent_shadow: rate(rays.shadow.len(), repeats, || {
-            tracer.occluded_batch(&rays.shadow, &mut shadow_occluded)
-        }),
-    };
-    Traced {
-        rates,
-        diffuse_hits,
-        shadow_occluded,
+    let mut traced: Vec<Traced> = tracers
+        .iter()
+        .map(|_| Traced {
+            rates: RayRates::default(),
+            diffuse_hits: vec![None; rays.diffuse.len()],
+            shadow_occluded: vec![false; rays.shadow.len()],
+        })
+        .collect();
+    let mut diffuse_occluded = vec![false; rays.diffuse.len()];
+    let mut rates: Vec<[Vec<f64>; 3]> = vec![Default::default(); tracers.len()];
+    let ray_counts = [rays.diffuse.len(), rays.diffuse.len(), rays.shadow.len()];
+    for pass in 0..=repeats.max(1) {
+        for ((tracer, traced), rates) in tracers.iter().zip(&mut traced).zip(&mut rates) {
+            let durations = [
+                seconds(|| tracer.intersect_batch(&rays.diffuse, &mut traced.diffuse_hits)),
+                seconds(|| tracer.occluded_batch(&diffuse_occlusion_rays, &mut diffuse_occluded)),
+                seconds(|| tracer.occluded_batch(&rays.shadow, &mut traced.shadow_occluded)),
+            ];
+            if pass > 0 {
+                for case in 0..3 {
+                    rates[case].push(ray_counts[case] as f64 / durations[case] / 1e6);
+                }
+            }
+        }
     }
+    for (traced, rates) in traced.iter_mut().zip(rates) {
+        let [closest, occlusion, shadow] = rates.map(median);
+        traced.rates = RayRates {
+            diffuse_closest_hit: closest,
+            diffuse_occlusion: occlusion,
+            coherent_shadow: shadow,
+        };
+    }
+    traced
 }
 
 fn fraction(count: usize, total: usize) -> f64 {
@@ -275,7 +287,15 @@ pub fn run(
 ) -> RayBenchReport {
     let (build_ms, bvh) = time_builds(|| Bvh::build(positions, triangles));
     let rays = RaySets::generate(positions, triangles, light_position, ray_count, seed);
-    let traced = measure(&bvh, &rays, repeats);
+    #[cfg(feature = "embree")]
+    let (embree_build_ms, embree) =
+        time_builds(|| crate::bvh::EmbreeScene::build(positions, triangles));
+    #[cfg(feature = "embree")]
+    let tracers: [&dyn BatchTracer; 2] = [&bvh, &embree];
+    #[cfg(not(feature = "embree"))]
+    let tracers: [&dyn BatchTracer; 1] = [&bvh];
+    let mut all_traced = measure(&tracers, &rays, repeats).into_iter();
+    let traced = all_traced.next().expect("the BVH was traced");
     #[allow(unused_mut)]
     let mut report = RayBenchReport {
         triangle_count: triangles.len(),
@@ -287,20 +307,26 @@ pub fn run(
         memory_bytes: bvh.memory_bytes(),
         rates: traced.rates,
         diffuse_hit_fraction: fraction(
-            traced.diffuse_hits.iter().filter(|hit| hit.is_some()).count(),
+            traced
+                .diffuse_hits
+                .iter()
+                .filter(|hit| hit.is_some())
+                .count(),
             rays.diffuse.len(),
         ),
         shadow_occluded_fraction: fraction(
-            traced.shadow_occluded.iter().filter(|&&blocked| blocked).count(),
+            traced
+                .shadow_occluded
+                .iter()
+                .filter(|&&blocked| blocked)
+                .count(),
             rays.shadow.len(),
         ),
         ..RayBenchReport::default()
     };
     #[cfg(feature = "embree")]
     {
-        let (embree_build_ms, embree) =
-            time_builds(|| crate::bvh::EmbreeScene::build(positions, triangles));
-        let embree_traced = measure(&embree, &rays, repeats);
+        let embree_traced = all_traced.next().expect("Embree was traced");
         let closest_hit_disagreements = traced
             .diffuse_hits
             .iter()

@@ -5,6 +5,7 @@
 #![allow(dead_code)]
 
 use serde_json::{json, Value};
+use std::f64::consts::FRAC_1_SQRT_2;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -112,7 +113,7 @@ pub fn quad_gltf(buffer_uri: Option<&str>) -> Value {
             {"camera": 0, "translation": [0.0, 1.0, 5.0]},
             {"extensions": {"KHR_lights_punctual": {"light": 0}}, "translation": [1.0, 1.0, 1.0]},
             {"extensions": {"KHR_lights_punctual": {"light": 1}},
-             "rotation": [-0.70710678, 0.0, 0.0, 0.70710678], "translation": [0.0, 3.0, 0.0]}
+             "rotation": [-FRAC_1_SQRT_2, 0.0, 0.0, FRAC_1_SQRT_2], "translation": [0.0, 3.0, 0.0]}
         ],
         "cameras": [{"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.1, "aspectRatio": 1.5}}],
         "extensions": {"KHR_lights_punctual": {"lights": [
@@ -150,11 +151,11 @@ pub fn quad_gltf(buffer_uri: Option<&str>) -> Value {
 /// Packs JSON and a binary chunk into a GLB container.
 pub fn to_glb(json: &Value, binary: &[u8]) -> Vec<u8> {
     let mut json_bytes = serde_json::to_vec(json).unwrap();
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
     let mut binary = binary.to_vec();
-    while binary.len() % 4 != 0 {
+    while !binary.len().is_multiple_of(4) {
         binary.push(0);
     }
     let total = 12 + 8 + json_bytes.len() + 8 + binary.len();

@@ -1,17 +1,23 @@
-//! Binned-SAH build of a binary tree, then collapse into the 4-wide layout.
+//! Binned-SAH build of a binary tree, then collapse into the 8-wide layout.
 //!
 //! Determinism: bins and bounds are merged with min/max and integer sums,
 //! which give the same bits in any order, and ties between split candidates
 //! go to the first axis/bin, so the tree depends only on the input.
 
 use super::traverse::{empty_node, STACK_SIZE};
-use super::{Bvh, TrianglePacket, WideNode, EMPTY_CHILD, LEAF_FLAG};
+use super::{
+    leaf_packets, Bvh, TrianglePacket, WideNode, EMPTY_CHILD, LEAF_COUNT_SHIFT, LEAF_FLAG, WIDTH,
+};
 use glam::{Vec3, Vec3A};
 use rayon::prelude::*;
 
 const BIN_COUNT: usize = 32;
-/// One triangle packet per leaf.
-const MAX_LEAF_SIZE: usize = 4;
+const PACKET_SIZE: usize = 4;
+/// Leaves hold up to two packets; below this many triangles SAH decides
+/// between a leaf and a split.
+const MAX_LEAF_TRIANGLES: usize = 8;
+/// SAH cost of a binary node relative to testing one triangle packet.
+const TRAVERSAL_COST: f32 = 0.4;
 /// Below this depth splits are forced to be object medians, which bounds the
 /// total depth by MAX_SAH_DEPTH + log2(n) and so the traversal stack.
 pub(crate) const MAX_SAH_DEPTH: usize = 48;
@@ -131,7 +137,7 @@ impl BinMapping {
 /// Number of leaf packets `count` triangles need at the least.
 #[inline]
 fn packet_count(count: u32) -> f32 {
-    count.div_ceil(MAX_LEAF_SIZE as u32) as f32
+    count.div_ceil(PACKET_SIZE as u32) as f32
 }
 
 fn triangle_is_degenerate(corners: &[Vec3; 3]) -> bool {
@@ -158,9 +164,9 @@ pub(crate) fn build(positions: &[Vec3], triangles: &[[u32; 3]]) -> Bvh {
             if triangle_is_degenerate(&corners) {
                 return None;
             }
-            let bounds = corners
-                .iter()
-                .fold(Aabb::EMPTY, |bounds, &corner| bounds.grow_point(corner.into()));
+            let bounds = corners.iter().fold(Aabb::EMPTY, |bounds, &corner| {
+                bounds.grow_point(corner.into())
+            });
             Some(Primitive {
                 bounds,
                 centroid: (bounds.min + bounds.max) * 0.5,
@@ -210,7 +216,7 @@ pub(crate) fn build(positions: &[Vec3], triangles: &[[u32; 3]]) -> Bvh {
             // A root with one leaf still needs a node for traversal to start at.
             let mut node = empty_node();
             set_slot(&mut node, 0, root_bounds);
-            node.children[0] = LEAF_FLAG | collapser.make_packet(*start, *count);
+            node.children[0] = collapser.make_leaf(*start, *count);
             collapser.nodes.push(node);
         }
     }
@@ -283,7 +289,7 @@ fn fill_bins(primitives: &[Primitive], references: &[u32], mapping: BinMapping) 
 
 /// Best (axis, first bin of the right side) by SAH, or None when every
 /// candidate leaves one side empty (all centroids in one bin).
-fn find_split(bins: &Bins) -> Option<(usize, usize)> {
+fn find_split(bins: &Bins) -> Option<(f32, usize, usize)> {
     let mut best: Option<(f32, usize, usize)> = None;
     for (axis, axis_bins) in bins.iter().enumerate() {
         let mut right_cost = [0.0f32; BIN_COUNT];
@@ -310,7 +316,7 @@ fn find_split(bins: &Bins) -> Option<(usize, usize)> {
             }
         }
     }
-    best.map(|(_, axis, split)| (axis, split))
+    best
 }
 
 /// In-place partition; returns the number of references left of the split.
@@ -321,7 +327,8 @@ fn partition(
     axis: usize,
     split: usize,
 ) -> usize {
-    let goes_left = |reference: u32| mapping.bins(primitives[reference as usize].centroid)[axis] < split;
+    let goes_left =
+        |reference: u32| mapping.bins(primitives[reference as usize].centroid)[axis] < split;
     let mut left = 0;
     let mut right = references.len();
     while left < right {
@@ -361,20 +368,32 @@ fn build_subtree(
 ) -> BuildNode {
     let (bounds, centroid_bounds) = node_bounds(primitives, references);
     let count = references.len();
-    if count <= MAX_LEAF_SIZE {
-        return BuildNode::Leaf {
-            bounds,
-            start,
-            count,
-        };
+    let leaf = BuildNode::Leaf {
+        bounds,
+        start,
+        count,
+    };
+    if count <= PACKET_SIZE {
+        return leaf;
     }
     let mut middle = 0;
     if depth < MAX_SAH_DEPTH {
         let mapping = BinMapping::new(centroid_bounds);
         let bins = fill_bins(primitives, references, mapping);
-        if let Some((axis, split)) = find_split(&bins) {
-            middle = partition(primitives, references, mapping, axis, split);
+        match find_split(&bins) {
+            Some((split_cost, axis, split)) => {
+                let leaf_cost = bounds.half_area() * packet_count(count as u32);
+                let split_cost = TRAVERSAL_COST * bounds.half_area() + split_cost;
+                if count <= MAX_LEAF_TRIANGLES && leaf_cost <= split_cost {
+                    return leaf;
+                }
+                middle = partition(primitives, references, mapping, axis, split);
+            }
+            None if count <= MAX_LEAF_TRIANGLES => return leaf,
+            None => {}
         }
+    } else if count <= MAX_LEAF_TRIANGLES {
+        return leaf;
     }
     if middle == 0 || middle == count {
         middle = median_split(primitives, references, centroid_bounds);
@@ -422,10 +441,10 @@ impl Collapser<'_> {
         };
         let index = self.nodes.len();
         self.nodes.push(empty_node());
-        // Pull grandchildren up until four slots are filled, always opening
+        // Pull grandchildren up until all slots are filled, always opening
         // the largest inner child: it is the one most rays would enter.
         let mut slots: Vec<&BuildNode> = children.iter().collect();
-        while slots.len() < 4 {
+        while slots.len() < WIDTH {
             let largest = slots
                 .iter()
                 .enumerate()
@@ -446,11 +465,19 @@ impl Collapser<'_> {
             slots[position] = &children[0];
             slots.insert(position + 1, &children[1]);
         }
+        // Occlusion visits slots in order without sorting: big boxes first
+        // are the likeliest to hold a blocker for long rays.
+        slots.sort_by(|first, second| {
+            second
+                .bounds()
+                .half_area()
+                .total_cmp(&first.bounds().half_area())
+        });
         let mut wide = empty_node();
         for (slot, child) in slots.into_iter().enumerate() {
             set_slot(&mut wide, slot, child.bounds());
             wide.children[slot] = match child {
-                BuildNode::Leaf { start, count, .. } => LEAF_FLAG | self.make_packet(*start, *count),
+                BuildNode::Leaf { start, count, .. } => self.make_leaf(*start, *count),
                 BuildNode::Inner { .. } => self.collapse(child),
             };
         }
@@ -458,35 +485,49 @@ impl Collapser<'_> {
         index as u32
     }
 
-    fn make_packet(&mut self, start: usize, count: usize) -> u32 {
-        let mut packet = TrianglePacket {
-            vertices: [[[0.0; 4]; 3]; 3],
-            triangles: [0; 4],
-        };
-        for lane in 0..4 {
-            // Unused lanes repeat the last triangle: they can only repeat its hit.
-            let triangle = self.references[start + lane.min(count - 1)];
-            packet.triangles[lane] = triangle;
-            let corners = corners(self.positions, &self.triangles[triangle as usize]);
-            for (corner, position) in corners.iter().enumerate() {
-                for axis in 0..3 {
-                    packet.vertices[corner][axis][lane] = position[axis];
+    /// Gathers the leaf's triangles into consecutive packets and returns
+    /// the leaf child reference.
+    fn make_leaf(&mut self, start: usize, count: usize) -> u32 {
+        let first_packet = self.packets.len();
+        for packet_start in (start..start + count).step_by(PACKET_SIZE) {
+            let packet_count = (start + count - packet_start).min(PACKET_SIZE);
+            let mut packet = TrianglePacket {
+                vertices: [[[0.0; 4]; 3]; 3],
+                triangles: [0; 4],
+            };
+            for lane in 0..PACKET_SIZE {
+                // Unused lanes repeat the last triangle: they can only repeat its hit.
+                let triangle = self.references[packet_start + lane.min(packet_count - 1)];
+                packet.triangles[lane] = triangle;
+                let corners = corners(self.positions, &self.triangles[triangle as usize]);
+                for (corner, position) in corners.iter().enumerate() {
+                    for axis in 0..3 {
+                        packet.vertices[corner][axis][lane] = position[axis];
+                    }
                 }
             }
+            self.packets.push(packet);
         }
-        self.packets.push(packet);
-        (self.packets.len() - 1) as u32
+        let packets = (self.packets.len() - first_packet) as u32;
+        assert!(
+            first_packet < (1 << LEAF_COUNT_SHIFT),
+            "too many triangles for the leaf encoding"
+        );
+        LEAF_FLAG | ((packets - 1) << LEAF_COUNT_SHIFT) | first_packet as u32
     }
 }
 
-fn slot_bounds(node: &WideNode, slot: usize) -> ([f32; 3], [f32; 3]) {
+/// (min, max) of one child slot.
+type SlotBounds = ([f32; 3], [f32; 3]);
+
+fn slot_bounds(node: &WideNode, slot: usize) -> SlotBounds {
     (
         std::array::from_fn(|axis| node.bounds[2 * axis][slot]),
         std::array::from_fn(|axis| node.bounds[2 * axis + 1][slot]),
     )
 }
 
-fn inside(point: [f32; 3], bounds: &([f32; 3], [f32; 3])) -> bool {
+fn inside(point: [f32; 3], bounds: &SlotBounds) -> bool {
     (0..3).all(|axis| bounds.0[axis] <= point[axis] && point[axis] <= bounds.1[axis])
 }
 
@@ -502,7 +543,7 @@ pub(crate) fn validate(bvh: &Bvh) -> Result<(), String> {
     let mut stored = 0usize;
     let mut max_depth = 0usize;
     // (node, depth, bounds of the parent slot holding it)
-    let mut pending: Vec<(usize, usize, Option<([f32; 3], [f32; 3])>)> = vec![(0, 1, None)];
+    let mut pending: Vec<(usize, usize, Option<SlotBounds>)> = vec![(0, 1, None)];
     while let Some((node_index, depth, parent_slot)) = pending.pop() {
         max_depth = max_depth.max(depth);
         node_visits[node_index] += 1;
@@ -510,7 +551,7 @@ pub(crate) fn validate(bvh: &Bvh) -> Result<(), String> {
             return Err(format!("node {node_index} reached twice"));
         }
         let node = &nodes[node_index];
-        for slot in 0..4 {
+        for slot in 0..WIDTH {
             let bounds = slot_bounds(node, slot);
             let child = node.children[slot];
             if child == EMPTY_CHILD {
@@ -519,8 +560,11 @@ pub(crate) fn validate(bvh: &Bvh) -> Result<(), String> {
                 }
                 continue;
             }
-            if (0..3).any(|axis| !(bounds.0[axis] <= bounds.1[axis])) {
-                return Err(format!("slot {slot} of node {node_index} has inverted bounds"));
+            // NaN bounds fail too.
+            if !(0..3).all(|axis| bounds.0[axis] <= bounds.1[axis]) {
+                return Err(format!(
+                    "slot {slot} of node {node_index} has inverted bounds"
+                ));
             }
             if let Some(parent) = &parent_slot {
                 if !inside(bounds.0, parent) || !inside(bounds.1, parent) {
@@ -537,41 +581,56 @@ pub(crate) fn validate(bvh: &Bvh) -> Result<(), String> {
                 pending.push((child, depth + 1, Some(bounds)));
                 continue;
             }
-            let packet_index = (child & !LEAF_FLAG) as usize;
-            let Some(packet) = packets.get(packet_index) else {
-                return Err(format!("node {node_index} names missing packet {packet_index}"));
-            };
-            packet_visits[packet_index] += 1;
-            if packet_visits[packet_index] > 1 {
-                return Err(format!("packet {packet_index} reached twice"));
+            let (first_packet, packet_count) = leaf_packets(child);
+            if first_packet + packet_count > packets.len() {
+                return Err(format!("node {node_index} names missing packets"));
             }
-            for lane in 0..4 {
-                let triangle = packet.triangles[lane];
-                let lane_vertices =
-                    |lane: usize| -> [[f32; 3]; 3] { std::array::from_fn(|corner| std::array::from_fn(|axis| packet.vertices[corner][axis][lane])) };
-                for corner in lane_vertices(lane) {
-                    if !inside(corner, &bounds) {
-                        return Err(format!("packet {packet_index} lane {lane} outside its slot"));
+            let leaf_range = first_packet..first_packet + packet_count;
+            for (packet_index, (packet, visits)) in packets[leaf_range.clone()]
+                .iter()
+                .zip(&mut packet_visits[leaf_range])
+                .enumerate()
+            {
+                let packet_index = first_packet + packet_index;
+                *visits += 1;
+                if *visits > 1 {
+                    return Err(format!("packet {packet_index} reached twice"));
+                }
+                for lane in 0..4 {
+                    let triangle = packet.triangles[lane];
+                    let lane_vertices = |lane: usize| -> [[f32; 3]; 3] {
+                        std::array::from_fn(|corner| {
+                            std::array::from_fn(|axis| packet.vertices[corner][axis][lane])
+                        })
+                    };
+                    for corner in lane_vertices(lane) {
+                        if !inside(corner, &bounds) {
+                            return Err(format!(
+                                "packet {packet_index} lane {lane} outside its slot"
+                            ));
+                        }
                     }
+                    // Padding lanes repeat the previous lane exactly.
+                    if lane > 0
+                        && packet.triangles[lane - 1] == triangle
+                        && lane_vertices(lane - 1) == lane_vertices(lane)
+                    {
+                        continue;
+                    }
+                    if packet.triangles[..lane].contains(&triangle) {
+                        return Err(format!("packet {packet_index} repeats triangle {triangle}"));
+                    }
+                    let Some(seen) = triangle_seen.get_mut(triangle as usize) else {
+                        return Err(format!(
+                            "packet {packet_index} names missing triangle {triangle}"
+                        ));
+                    };
+                    if *seen {
+                        return Err(format!("triangle {triangle} stored twice"));
+                    }
+                    *seen = true;
+                    stored += 1;
                 }
-                // Padding lanes repeat the previous lane exactly.
-                if lane > 0
-                    && packet.triangles[lane - 1] == triangle
-                    && lane_vertices(lane - 1) == lane_vertices(lane)
-                {
-                    continue;
-                }
-                if packet.triangles[..lane].contains(&triangle) {
-                    return Err(format!("packet {packet_index} repeats triangle {triangle}"));
-                }
-                let Some(seen) = triangle_seen.get_mut(triangle as usize) else {
-                    return Err(format!("packet {packet_index} names missing triangle {triangle}"));
-                };
-                if *seen {
-                    return Err(format!("triangle {triangle} stored twice"));
-                }
-                *seen = true;
-                stored += 1;
             }
         }
     }
@@ -587,7 +646,7 @@ pub(crate) fn validate(bvh: &Bvh) -> Result<(), String> {
             bvh.stored_triangle_count
         ));
     }
-    if 3 * max_depth + 1 > STACK_SIZE {
+    if (WIDTH - 1) * max_depth + 1 > STACK_SIZE {
         return Err(format!("depth {max_depth} overflows the traversal stack"));
     }
     Ok(())

@@ -22,7 +22,7 @@ const RTC_BUFFER_TYPE_INDEX: c_uint = 0;
 const RTC_BUFFER_TYPE_VERTEX: c_uint = 1;
 const RTC_FORMAT_UINT3: c_uint = 0x5003;
 const RTC_FORMAT_FLOAT3: c_uint = 0x9003;
-const RTC_BUILD_QUALITY_HIGH: c_uint = 2;
+const RTC_BUILD_QUALITY_MEDIUM: c_uint = 1;
 const RTC_INVALID_GEOMETRY_ID: c_uint = u32::MAX;
 
 #[repr(C, align(16))]
@@ -153,7 +153,7 @@ impl EmbreeScene {
             let device = rtcNewDevice(std::ptr::null());
             assert!(!device.is_null(), "rtcNewDevice failed");
             let scene = rtcNewScene(device);
-            rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_HIGH);
+            rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_MEDIUM);
             if !triangles.is_empty() {
                 let geometry = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
                 // Buffers from rtcSetNewGeometryBuffer carry the tail padding

@@ -10,16 +10,19 @@
 //!   integer sums, which are order independent), so the tree is bit-identical
 //!   for any thread count. Deep, badly split chains fall back to median
 //!   splits, which bounds the depth and hence the traversal stack.
-//! - **Layout**: the binary tree is collapsed into a 4-wide BVH stored as two
+//! - **Layout**: the binary tree is collapsed into an 8-wide BVH stored as two
 //!   flat arrays: [`WideNode`] (struct-of-arrays child bounds, so one ray
-//!   tests all four children with one SIMD slab test) and [`TrianglePacket`]
-//!   (up to four triangles' vertices copied in leaf order, struct-of-arrays,
-//!   tested together). Children are plain `u32` indices, so a GPU path can
+//!   tests all eight children with one SIMD slab test) and [`TrianglePacket`]
+//!   (four triangles' vertices copied in leaf order, struct-of-arrays,
+//!   tested together; a leaf is one or two consecutive packets, chosen by
+//!   SAH with a traversal cost so the bottom of the tree is not all
+//!   half-empty nodes). Children are plain `u32` indices, so a GPU path can
 //!   upload both arrays as they are.
 //! - **Traversal** ([`traverse`]): ordered by entry distance for closest hit
 //!   (nearest child first, farther ones stacked with their distance so they
-//!   are skipped once a closer hit is known), unordered with early exit for
-//!   occlusion. The stack is a fixed array on the machine stack; nothing is
+//!   are skipped once a closer hit is known); for occlusion, in slot order
+//!   with early exit, where the builder sorts slots by decreasing box area
+//!   (big boxes are the likeliest to block a long ray). The stack is a fixed array on the machine stack; nothing is
 //!   allocated per ray. The slab test picks near/far planes by the sign of
 //!   the ray direction and widens the far distance by a few ulps (Ize 2013),
 //!   so boxes are never missed by rounding.
@@ -28,8 +31,17 @@
 //!   re-evaluation of edge functions that round to exactly zero. A ray
 //!   through a shared edge or vertex of a closed mesh hits at least one of
 //!   the triangles sharing it; degenerate triangles never hit.
-//! - **SIMD**: `glam::Vec4`, which is SSE2 on x86_64, NEON on aarch64 and a
-//!   scalar fallback elsewhere, so there is one portable code path.
+//! - **SIMD**: node tests run on eight lanes: AVX (`std::arch`) in copies of
+//!   the traversal compiled with AVX2/FMA, chosen at run time on x86_64 CPUs
+//!   that have them, otherwise two `glam::Vec4` (SSE2 on x86_64, NEON on
+//!   aarch64, scalar elsewhere). Triangle packets always use `glam::Vec4`.
+//!   Measured on the shared scenes (single thread, CPU time per ray): the
+//!   8-wide AVX traversal is about 1.4x faster than the same code 4-wide
+//!   with SSE2; slot-order occlusion beats nearest-first occlusion by about
+//!   1.4x (ordering only pays for closest hit), and biggest-box-first slot
+//!   order gains another 15% on Sponza. Things measured that did not help:
+//!   64 instead of 32 bins, software prefetch of stacked children, one FMA
+//!   per plane instead of subtract-multiply, sorting only the nearest child.
 //!
 //! Triangles with zero area or non-finite vertices are dropped at build time
 //! (they can never be hit); [`Bvh::triangle_count`] still reports the input
@@ -66,18 +78,35 @@ pub struct Hit {
 
 /// A child slot that holds nothing; its bounds are empty (min +inf, max -inf).
 pub const EMPTY_CHILD: u32 = u32::MAX;
-/// Set on a child reference that names a [`TrianglePacket`] instead of a node.
+/// Set on a child reference that names a leaf instead of a node. A leaf is
+/// `LEAF_FLAG | (packet count - 1) << LEAF_COUNT_SHIFT | first packet`: its
+/// packets are consecutive in [`Bvh::packets`].
 pub const LEAF_FLAG: u32 = 1 << 31;
+pub const LEAF_COUNT_SHIFT: u32 = 28;
+pub const LEAF_INDEX_MASK: u32 = (1 << LEAF_COUNT_SHIFT) - 1;
 
-/// One node of the 4-wide BVH. `bounds[2 * axis]` holds the minima and
-/// `bounds[2 * axis + 1]` the maxima of the four children along `axis`, so the
-/// near plane of an axis is `bounds[2 * axis + (direction < 0)]`.
+/// (first packet, packet count) of a leaf child reference.
+#[inline(always)]
+pub fn leaf_packets(child: u32) -> (usize, usize) {
+    (
+        (child & LEAF_INDEX_MASK) as usize,
+        (((child & !LEAF_FLAG) >> LEAF_COUNT_SHIFT) + 1) as usize,
+    )
+}
+
+/// Children per node.
+pub const WIDTH: usize = 8;
+
+/// One node of the 8-wide BVH (256 bytes, four cache lines).
+/// `bounds[2 * axis]` holds the minima and `bounds[2 * axis + 1]` the maxima
+/// of the children along `axis`, so the near plane of an axis is
+/// `bounds[2 * axis + (direction < 0)]`.
 #[repr(C, align(64))]
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct WideNode {
-    pub bounds: [[f32; 4]; 6],
-    /// Node index, `LEAF_FLAG | packet index`, or [`EMPTY_CHILD`].
-    pub children: [u32; 4],
+    pub bounds: [[f32; WIDTH]; 6],
+    /// Node index, leaf reference (see [`LEAF_FLAG`]), or [`EMPTY_CHILD`].
+    pub children: [u32; WIDTH],
 }
 
 /// Up to four triangles, vertices gathered in leaf order.

@@ -1,32 +1,143 @@
-//! Stack-based traversal of the 4-wide BVH: one SIMD slab test per node,
-//! nearest-first order for closest hit, early exit for occlusion.
+//! Stack-based traversal of the 8-wide BVH: one SIMD slab test of all
+//! eight children per node, nearest-first order for closest hit, early exit
+//! for occlusion.
+//!
+//! The traversal is written once, generic over an eight-lane float type:
+//! AVX (`__m256`) inside functions compiled with AVX2/FMA on x86_64 CPUs
+//! that have them, and two `glam::Vec4` (SSE2/NEON/scalar) everywhere else.
 
 use super::triangle::{intersect_packet, ShearedRay};
-use super::{Hit, Ray, TrianglePacket, WideNode, EMPTY_CHILD, LEAF_FLAG};
+use super::{leaf_packets, Hit, Ray, TrianglePacket, WideNode, EMPTY_CHILD, LEAF_FLAG, WIDTH};
 use glam::{Vec2, Vec4};
 use std::mem::MaybeUninit;
 
 /// Enough for the deepest tree the builder can produce: it forces median
-/// splits below depth `build::MAX_SAH_DEPTH`, so the binary depth is at most
-/// 48 + 33, each wide level pushes at most three entries, and 3 * 81 < 256.
-pub(crate) const STACK_SIZE: usize = 256;
+/// splits below depth `build::MAX_SAH_DEPTH` (48), so the binary depth is at
+/// most 48 + 33; a wide level is at least one binary level and pushes at
+/// most WIDTH - 1 = 7 entries, and 7 * 81 + 1 <= 576.
+pub(crate) const STACK_SIZE: usize = 576;
 
 /// Ize (2013), "Robust BVH Ray Traversal": scaling the far distance by
 /// 1 + 2 gamma(3) makes the float slab test conservative.
 const FAR_SCALE: f32 = 1.0 + 2.0 * (3.0 * f32::EPSILON * 0.5) / (1.0 - 3.0 * f32::EPSILON * 0.5);
 
-/// Per-ray constants of the slab test, splatted across the four children.
-struct SlabRay {
-    origin: [Vec4; 3],
-    inverse_direction: [Vec4; 3],
+/// Eight f32 lanes: what the slab test needs and nothing more.
+///
+/// # Safety
+/// Implementations may use instructions the caller must know are available
+/// (see `AvxLanes`); every method is therefore `unsafe`.
+trait Lanes: Copy {
+    unsafe fn load(values: &[f32; WIDTH]) -> Self;
+    unsafe fn splat(value: f32) -> Self;
+    unsafe fn sub(self, other: Self) -> Self;
+    unsafe fn mul(self, other: Self) -> Self;
+    unsafe fn min(self, other: Self) -> Self;
+    unsafe fn max(self, other: Self) -> Self;
+    /// Bit i set where lane i of self <= other.
+    unsafe fn less_equal_mask(self, other: Self) -> u32;
+    unsafe fn to_array(self) -> [f32; WIDTH];
+}
+
+#[derive(Clone, Copy)]
+struct PortableLanes([Vec4; 2]);
+
+impl Lanes for PortableLanes {
+    #[inline(always)]
+    unsafe fn load(values: &[f32; WIDTH]) -> Self {
+        Self([
+            Vec4::from_slice(&values[..4]),
+            Vec4::from_slice(&values[4..]),
+        ])
+    }
+    #[inline(always)]
+    unsafe fn splat(value: f32) -> Self {
+        Self([Vec4::splat(value); 2])
+    }
+    #[inline(always)]
+    unsafe fn sub(self, other: Self) -> Self {
+        Self([self.0[0] - other.0[0], self.0[1] - other.0[1]])
+    }
+    #[inline(always)]
+    unsafe fn mul(self, other: Self) -> Self {
+        Self([self.0[0] * other.0[0], self.0[1] * other.0[1]])
+    }
+    #[inline(always)]
+    unsafe fn min(self, other: Self) -> Self {
+        Self([self.0[0].min(other.0[0]), self.0[1].min(other.0[1])])
+    }
+    #[inline(always)]
+    unsafe fn max(self, other: Self) -> Self {
+        Self([self.0[0].max(other.0[0]), self.0[1].max(other.0[1])])
+    }
+    #[inline(always)]
+    unsafe fn less_equal_mask(self, other: Self) -> u32 {
+        self.0[0].cmple(other.0[0]).bitmask() | (self.0[1].cmple(other.0[1]).bitmask() << 4)
+    }
+    #[inline(always)]
+    unsafe fn to_array(self) -> [f32; WIDTH] {
+        let (low, high) = (self.0[0].to_array(), self.0[1].to_array());
+        [
+            low[0], low[1], low[2], low[3], high[0], high[1], high[2], high[3],
+        ]
+    }
+}
+
+/// Only constructed inside `#[target_feature(enable = "avx2,fma")]`
+/// functions, which run only after the CPU was checked for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+struct AvxLanes(std::arch::x86_64::__m256);
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes for AvxLanes {
+    #[inline(always)]
+    unsafe fn load(values: &[f32; WIDTH]) -> Self {
+        Self(std::arch::x86_64::_mm256_loadu_ps(values.as_ptr()))
+    }
+    #[inline(always)]
+    unsafe fn splat(value: f32) -> Self {
+        Self(std::arch::x86_64::_mm256_set1_ps(value))
+    }
+    #[inline(always)]
+    unsafe fn sub(self, other: Self) -> Self {
+        Self(std::arch::x86_64::_mm256_sub_ps(self.0, other.0))
+    }
+    #[inline(always)]
+    unsafe fn mul(self, other: Self) -> Self {
+        Self(std::arch::x86_64::_mm256_mul_ps(self.0, other.0))
+    }
+    #[inline(always)]
+    unsafe fn min(self, other: Self) -> Self {
+        Self(std::arch::x86_64::_mm256_min_ps(self.0, other.0))
+    }
+    #[inline(always)]
+    unsafe fn max(self, other: Self) -> Self {
+        Self(std::arch::x86_64::_mm256_max_ps(self.0, other.0))
+    }
+    #[inline(always)]
+    unsafe fn less_equal_mask(self, other: Self) -> u32 {
+        use std::arch::x86_64::{_mm256_cmp_ps, _mm256_movemask_ps, _CMP_LE_OQ};
+        _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(self.0, other.0)) as u32
+    }
+    #[inline(always)]
+    unsafe fn to_array(self) -> [f32; WIDTH] {
+        std::mem::transmute::<std::arch::x86_64::__m256, [f32; WIDTH]>(self.0)
+    }
+}
+
+/// Per-ray constants of the slab test, splatted across the children.
+struct SlabRay<L: Lanes> {
+    origin: [L; 3],
+    inverse_direction: [L; 3],
+    zero: L,
     /// Index into `WideNode::bounds` of the entry and exit plane per axis.
     near: [usize; 3],
     far: [usize; 3],
 }
 
-impl SlabRay {
+impl<L: Lanes> SlabRay<L> {
     #[inline(always)]
-    fn new(ray: &Ray) -> Self {
+    unsafe fn new(ray: &Ray) -> Self {
         // A zero component would make (plane - origin) * inf a NaN when the
         // origin lies on the plane; a tiny component of the same sign gives
         // a huge but finite inverse and the same answer everywhere else.
@@ -45,20 +156,22 @@ impl SlabRay {
         let origin = ray.origin.to_array();
         let negative = direction.map(|component| (component < 0.0) as usize);
         Self {
-            origin: origin.map(Vec4::splat),
-            inverse_direction: direction.map(|component| Vec4::splat(1.0 / component)),
+            origin: origin.map(|value| L::splat(value)),
+            inverse_direction: direction.map(|component| L::splat(1.0 / component)),
+            zero: L::splat(0.0),
             near: [negative[0], 2 + negative[1], 4 + negative[2]],
             far: [1 - negative[0], 3 - negative[1], 5 - negative[2]],
         }
     }
 
     /// Entry distances and the mask of children the ray enters within
-    /// (0, t_max).
+    /// (0, t_max). Empty slots (min +inf, max -inf) always fail.
     #[inline(always)]
-    fn test(&self, node: &WideNode, t_max: f32) -> (Vec4, u32) {
+    unsafe fn test(&self, node: &WideNode, t_max: f32) -> (L, u32) {
         let plane = |index: usize, axis: usize| {
-            (Vec4::from_array(node.bounds[index]) - self.origin[axis])
-                * self.inverse_direction[axis]
+            L::load(&node.bounds[index])
+                .sub(self.origin[axis])
+                .mul(self.inverse_direction[axis])
         };
         let near_x = plane(self.near[0], 0);
         let near_y = plane(self.near[1], 1);
@@ -66,9 +179,12 @@ impl SlabRay {
         let far_x = plane(self.far[0], 0);
         let far_y = plane(self.far[1], 1);
         let far_z = plane(self.far[2], 2);
-        let entry = near_x.max(near_y).max(near_z.max(Vec4::ZERO));
-        let exit = far_x.min(far_y).min(far_z.min(Vec4::splat(t_max))) * FAR_SCALE;
-        (entry, entry.cmple(exit).bitmask())
+        let entry = near_x.max(near_y).max(near_z.max(self.zero));
+        let exit = far_x
+            .min(far_y)
+            .min(far_z.min(L::splat(t_max)))
+            .mul(L::splat(FAR_SCALE));
+        (entry, entry.less_equal_mask(exit))
     }
 }
 
@@ -125,14 +241,19 @@ impl TraversalStack {
 /// Returns the nearest child entered (`mask` non-zero) and stacks the
 /// others farthest first, so they pop in order of entry distance.
 #[inline(always)]
-fn visit_nearest_first(node: &WideNode, entry: Vec4, mut mask: u32, stack: &mut TraversalStack) -> u32 {
+unsafe fn visit_nearest_first<L: Lanes>(
+    node: &WideNode,
+    entry: L,
+    mut mask: u32,
+    stack: &mut TraversalStack,
+) -> u32 {
     let first = mask.trailing_zeros() as usize;
     mask &= mask - 1;
     if mask == 0 {
         return node.children[first];
     }
     let distances = entry.to_array();
-    let mut order = [(0.0f32, 0u32); 4];
+    let mut order = [(0.0f32, 0u32); WIDTH];
     order[0] = (distances[first], node.children[first]);
     let mut count = 1;
     while mask != 0 {
@@ -176,13 +297,15 @@ fn has_avx2() -> bool {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn intersect_avx2(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> Option<Hit> {
-    intersect_portable(nodes, packets, ray)
+    // SAFETY: AVX2 is enabled for this function.
+    unsafe { intersect_generic::<AvxLanes>(nodes, packets, ray) }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 fn occluded_avx2(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> bool {
-    occluded_portable(nodes, packets, ray)
+    // SAFETY: AVX2 is enabled for this function.
+    unsafe { occluded_generic::<AvxLanes>(nodes, packets, ray) }
 }
 
 /// The same traversal compiled for the baseline target and, on x86_64, with
@@ -194,7 +317,8 @@ pub(crate) fn intersect(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ra
         // SAFETY: the CPU supports the features the function is compiled for.
         return unsafe { intersect_avx2(nodes, packets, ray) };
     }
-    intersect_portable(nodes, packets, ray)
+    // SAFETY: PortableLanes needs no CPU features beyond the target's.
+    unsafe { intersect_generic::<PortableLanes>(nodes, packets, ray) }
 }
 
 #[inline]
@@ -204,43 +328,53 @@ pub(crate) fn occluded(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray
         // SAFETY: as in `intersect`.
         return unsafe { occluded_avx2(nodes, packets, ray) };
     }
-    occluded_portable(nodes, packets, ray)
+    // SAFETY: as in `intersect`.
+    unsafe { occluded_generic::<PortableLanes>(nodes, packets, ray) }
 }
 
+/// # Safety
+/// `L`'s instructions must be available (see [`Lanes`]).
 #[inline(always)]
-fn intersect_portable(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> Option<Hit> {
+unsafe fn intersect_generic<L: Lanes>(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+) -> Option<Hit> {
     let mut t_max = ray.t_max;
     if !is_traceable(ray) {
         return None;
     }
-    let slab = SlabRay::new(ray);
+    let slab = SlabRay::<L>::new(ray);
     let sheared = ShearedRay::new(ray.origin, ray.direction);
     let mut stack = TraversalStack::new();
     let mut best: Option<(u32, f32, Vec2)> = None;
     let mut current = 0u32;
     loop {
         if is_leaf(current) {
-            // SAFETY: the builder only emits packet indices below the count.
-            let packet = unsafe { packets.get_unchecked((current & !LEAF_FLAG) as usize) };
-            if let Some(hits) = intersect_packet(&sheared, packet, t_max) {
-                let t = hits.t.to_array();
-                let mut mask = hits.mask;
-                let mut closest_lane = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                while mask != 0 {
-                    let lane = mask.trailing_zeros() as usize;
-                    if t[lane] < t[closest_lane] {
-                        closest_lane = lane;
-                    }
+            let (first_packet, packet_count) = leaf_packets(current);
+            for packet_index in first_packet..first_packet + packet_count {
+                // SAFETY: the builder only emits packet ranges inside the array.
+                let packet = unsafe { packets.get_unchecked(packet_index) };
+                if let Some(hits) = intersect_packet(&sheared, packet, t_max) {
+                    let t = hits.t.to_array();
+                    let mut mask = hits.mask;
+                    let mut closest_lane = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
+                    while mask != 0 {
+                        let lane = mask.trailing_zeros() as usize;
+                        if t[lane] < t[closest_lane] {
+                            closest_lane = lane;
+                        }
+                        mask &= mask - 1;
+                    }
+                    t_max = t[closest_lane];
+                    let inverse_determinant = 1.0 / hits.determinant.to_array()[closest_lane];
+                    let barycentric = Vec2::new(
+                        hits.edge_v.to_array()[closest_lane] * inverse_determinant,
+                        hits.edge_w.to_array()[closest_lane] * inverse_determinant,
+                    );
+                    best = Some((packet.triangles[closest_lane], t_max, barycentric));
                 }
-                t_max = t[closest_lane];
-                let inverse_determinant = 1.0 / hits.determinant.to_array()[closest_lane];
-                let barycentric = Vec2::new(
-                    hits.edge_v.to_array()[closest_lane] * inverse_determinant,
-                    hits.edge_w.to_array()[closest_lane] * inverse_determinant,
-                );
-                best = Some((packet.triangles[closest_lane], t_max, barycentric));
             }
         } else {
             // SAFETY: the builder only emits node indices below the count.
@@ -271,34 +405,46 @@ fn intersect_portable(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray)
     }
 }
 
+/// # Safety
+/// As for [`intersect_generic`].
 #[inline(always)]
-fn occluded_portable(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> bool {
+unsafe fn occluded_generic<L: Lanes>(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+) -> bool {
     let t_max = ray.t_max;
     if !is_traceable(ray) {
         return false;
     }
-    let slab = SlabRay::new(ray);
+    let slab = SlabRay::<L>::new(ray);
     let sheared = ShearedRay::new(ray.origin, ray.direction);
     let mut stack = TraversalStack::new();
     let mut current = 0u32;
     loop {
         if is_leaf(current) {
-            // SAFETY: the builder only emits packet indices below the count.
-            let packet = unsafe { packets.get_unchecked((current & !LEAF_FLAG) as usize) };
-            if intersect_packet(&sheared, packet, t_max).is_some() {
-                return true;
+            let (first_packet, packet_count) = leaf_packets(current);
+            for packet_index in first_packet..first_packet + packet_count {
+                // SAFETY: the builder only emits packet ranges inside the array.
+                let packet = unsafe { packets.get_unchecked(packet_index) };
+                if intersect_packet(&sheared, packet, t_max).is_some() {
+                    return true;
+                }
             }
         } else {
             // SAFETY: the builder only emits node indices below the count.
             let node = unsafe { nodes.get_unchecked(current as usize) };
             let (_, mut mask) = slab.test(node, t_max);
             if mask != 0 {
-                // Any order will do; sorting costs more than it saves here.
+                // Slot order, not distance order: the builder puts big boxes
+                // first, and sorting by distance costs more than it saves
+                // here. Stacked from the last slot so slots pop in order.
                 current = node.children[mask.trailing_zeros() as usize];
                 mask &= mask - 1;
                 while mask != 0 {
-                    stack.push(node.children[mask.trailing_zeros() as usize], 0.0);
-                    mask &= mask - 1;
+                    let slot = 31 - mask.leading_zeros() as usize;
+                    stack.push(node.children[slot], 0.0);
+                    mask &= !(1 << slot);
                 }
                 continue;
             }
@@ -312,14 +458,49 @@ fn occluded_portable(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) 
 
 /// Empty-slot bounds: min +inf, max -inf, so every slab test misses.
 pub(crate) fn empty_node() -> WideNode {
-    let mut bounds = [[0.0; 4]; 6];
+    let mut bounds = [[0.0; WIDTH]; 6];
     for axis in 0..3 {
-        bounds[2 * axis] = [f32::INFINITY; 4];
-        bounds[2 * axis + 1] = [f32::NEG_INFINITY; 4];
+        bounds[2 * axis] = [f32::INFINITY; WIDTH];
+        bounds[2 * axis + 1] = [f32::NEG_INFINITY; WIDTH];
     }
     WideNode {
         bounds,
-        children: [EMPTY_CHILD; 4],
+        children: [EMPTY_CHILD; WIDTH],
     }
 }
 
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bvh::Bvh;
+    use glam::Vec3;
+    use relight_core::sampling::{uniform_sphere, Pcg32};
+
+    /// The AVX and the portable lane types must give identical answers; the
+    /// integration tests only reach the one the CPU selects.
+    #[test]
+    fn bvh_portable_and_dispatched_traversal_agree() {
+        let mut rng = Pcg32::new(5, 1);
+        let positions: Vec<Vec3> = (0..3000)
+            .map(|_| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0)
+            .collect();
+        let triangles: Vec<[u32; 3]> = (0..1000u32)
+            .map(|index| [3 * index, 3 * index + 1, 3 * index + 2])
+            .collect();
+        let bvh = Bvh::build(&positions, &triangles);
+        for _ in 0..2000 {
+            let ray = Ray {
+                origin: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0,
+                direction: uniform_sphere(rng.next_vec2()),
+                t_max: 1.0 + 20.0 * rng.next_f32(),
+            };
+            // SAFETY: PortableLanes needs no CPU features.
+            let portable =
+                unsafe { intersect_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
+            let portable_occluded =
+                unsafe { occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
+            assert_eq!(portable, bvh.intersect(&ray));
+            assert_eq!(portable_occluded, bvh.occluded(&ray));
+        }
+    }
+}

@@ -1,0 +1,167 @@
+//! End-to-end tests of the `relight` binary on the shipped scenes: outputs
+//! exist and parse, errors name what is wrong, and the lightmap pipeline
+//! (atlas, receivers, dilation, bilinear lookup) agrees with per-pixel path
+//! tracing.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn relight() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_relight"))
+}
+
+fn scene(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../scenes")
+        .join(name)
+        .join("scene.toml")
+}
+
+fn run_ok(command: &mut Command) -> String {
+    let output = command.output().expect("relight runs");
+    assert!(
+        output.status.success(),
+        "relight failed: {}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8(output.stdout).expect("utf-8 output")
+}
+
+fn run_err(command: &mut Command) -> String {
+    let output = command.output().expect("relight runs");
+    assert!(!output.status.success(), "relight should have failed");
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+#[test]
+fn info_reports_the_cornell_box() {
+    let text = run_ok(relight().args(["info", "-q"]).arg(scene("cornell-box")));
+    assert!(text.contains("emissive triangles"), "{text}");
+    let receivers: usize = text
+        .lines()
+        .find_map(|line| line.strip_prefix("receivers"))
+        .map(|rest| rest.trim().parse().expect("a count"))
+        .expect("a receivers line");
+    assert!(receivers > 1000, "{receivers}");
+}
+
+#[test]
+fn render_writes_exr_and_png() {
+    let folder = tempfile::tempdir().unwrap();
+    for (technique, file) in [("reference", "a.exr"), ("direct", "b.png")] {
+        let output = folder.path().join(file);
+        run_ok(
+            relight()
+                .args([
+                    "render",
+                    "-q",
+                    "--spp",
+                    "2",
+                    "--technique",
+                    technique,
+                    "--lightmap-resolution",
+                    "32",
+                ])
+                .arg(scene("cornell-box-point"))
+                .arg("-o")
+                .arg(&output),
+        );
+        assert!(std::fs::metadata(&output).unwrap().len() > 1000);
+    }
+    let image = relight_render::Image::read_exr(&folder.path().join("a.exr")).unwrap();
+    assert_eq!((image.width, image.height), (256, 256));
+    assert!(image
+        .pixels
+        .iter()
+        .all(|p| p.is_finite() && p.min_element() >= 0.0));
+}
+
+#[test]
+fn user_errors_name_the_culprit() {
+    let missing = run_err(relight().args(["info", "-q", "no/such/scene.toml"]));
+    assert!(missing.contains("no/such/scene.toml"), "{missing}");
+    let technique = run_err(
+        relight()
+            .args([
+                "render",
+                "-q",
+                "--technique",
+                "nonsense",
+                "-o",
+                "/tmp/x.png",
+            ])
+            .arg(scene("cornell-box")),
+    );
+    assert!(
+        technique.contains("nonsense") && technique.contains("reference"),
+        "{technique}"
+    );
+    let parameter = run_err(
+        relight()
+            .args([
+                "render",
+                "-q",
+                "--technique",
+                "reference",
+                "--set",
+                "samples=4",
+                "-o",
+                "/tmp/x.png",
+            ])
+            .arg(scene("cornell-box")),
+    );
+    assert!(parameter.contains("--set"), "{parameter}");
+    let extension = run_err(
+        relight()
+            .args([
+                "render",
+                "-q",
+                "--spp",
+                "1",
+                "--technique",
+                "direct",
+                "-o",
+                "/tmp/relight-test.bmp",
+            ])
+            .arg(scene("cornell-box")),
+    );
+    assert!(
+        extension.contains(".exr") && extension.contains(".png"),
+        "{extension}"
+    );
+    let resolution = run_err(
+        relight()
+            .args(["info", "-q", "--lightmap-resolution", "3"])
+            .arg(scene("cornell-box")),
+    );
+    assert!(resolution.contains("--lightmap-resolution"), "{resolution}");
+}
+
+#[test]
+fn bench_writes_json_with_stages() {
+    let folder = tempfile::tempdir().unwrap();
+    let json = folder.path().join("bench.json");
+    run_ok(
+        relight()
+            .args([
+                "bench",
+                "-q",
+                "--technique",
+                "direct",
+                "--frames",
+                "4",
+                "--lightmap-resolution",
+                "32",
+                "--json",
+            ])
+            .arg(&json)
+            .arg(scene("corridor")),
+    );
+    let text = std::fs::read_to_string(&json).unwrap();
+    let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(value["frames"], 4);
+    assert_eq!(value["stages"][0]["stage"], "direct lightmap");
+    assert!(value["total"]["median_ms"].as_f64().unwrap() > 0.0);
+    assert!(value["memory_total_bytes"].as_u64().unwrap() > 0);
+}
