@@ -149,7 +149,7 @@ class SceneDescription:
     camera: CameraDescription
     lights: list[dict]
     environment_radiance: list[float]
-    # material name -> (positions array (N, 3), triangle index array (M, 3))
+    # Every OBJ vertex position (N x 3); triangles index it, grouped by material name.
     positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     triangles_by_material: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict)
     materials: dict[str, MaterialDescription] = field(default_factory=dict)
@@ -303,7 +303,8 @@ def read_mtl(mtl_path: Path, materials: dict[str, MaterialDescription], warnings
         line = raw_line.split("#", 1)[0].strip()
         if not line:
             continue
-        keyword, _, rest = line.partition(" ")
+        keyword, _, rest = line.replace("\t", " ").partition(" ")
+        rest = rest.strip()
         fields = rest.split()
         context = f"{mtl_path}:{line_number}"
         if keyword == "newmtl":
@@ -352,7 +353,8 @@ def read_obj(scene: SceneDescription) -> None:
         line = raw_line.split("#", 1)[0].strip()
         if not line:
             continue
-        keyword, _, rest = line.partition(" ")
+        keyword, _, rest = line.replace("\t", " ").partition(" ")
+        rest = rest.strip()
         fields = rest.split()
         context = f"{obj_path}:{line_number}"
         if keyword == "v":
@@ -759,12 +761,13 @@ def compare(label, relight_images, mitsuba_images, given_bound, has_relight_pair
     )
 
 
-def load_relight_images(mitsuba, arguments, scene: SceneDescription, output_directory: Path) -> list[np.ndarray]:
+def load_relight_images(
+    mitsuba, arguments, relight_binary: str | None, scene: SceneDescription, output_directory: Path
+) -> list[np.ndarray]:
     """relight's render(s): two seeds normally, one when --relight-image is given."""
     if arguments.relight_image is not None:
         paths = [arguments.relight_image]
     else:
-        relight_binary = find_relight_binary(arguments.relight)
         paths = []
         for seed in RELIGHT_SEEDS:
             path = output_directory / ("relight.exr" if seed == RELIGHT_SEEDS[0] else f"relight_seed{seed}.exr")
@@ -789,6 +792,7 @@ def cross_check(arguments: argparse.Namespace) -> int:
     for warning in scene.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     mitsuba = import_mitsuba()
+    relight_binary = None if arguments.relight_image is not None else find_relight_binary(arguments.relight)
     output_directory = arguments.out
     output_directory.mkdir(parents=True, exist_ok=True)
     camera = scene.camera
@@ -805,7 +809,7 @@ def cross_check(arguments: argparse.Namespace) -> int:
     )
 
     stage_started = time.monotonic()
-    relight_images = load_relight_images(mitsuba, arguments, scene, output_directory)
+    relight_images = load_relight_images(mitsuba, arguments, relight_binary, scene, output_directory)
     relight_seconds = time.monotonic() - stage_started
     if not all(np.all(np.isfinite(image)) for image in relight_images):
         print("FAIL: relight's image contains non-finite pixels", file=sys.stderr)

@@ -152,7 +152,7 @@ fn bench_writes_json_with_stages() {
                 "--frames",
                 "4",
                 "--lightmap-resolution",
-                "32",
+                "64",
                 "--json",
             ])
             .arg(&json)

@@ -457,16 +457,24 @@ fn fit_resolution(
     charts: &[Chart],
     resolution: u32,
 ) -> Result<(f32, (u32, u32, Vec<[Vec2; 3]>)), SceneError> {
-    // Every chart costs at least its gutter ring, whatever the texel size.
-    let gutter_bound = (charts.len() as f64).sqrt() * (2 * GUTTER_TEXELS + 2) as f64;
-    if gutter_bound > resolution as f64 {
+    // However large the texels, every chart keeps its gutter ring and one
+    // texel: shelves of such minimal charts bound what any texel size can fit.
+    let smallest_chart = 2 * GUTTER_TEXELS + 2;
+    let fits_minimal = |side: u32| {
+        let per_row = (side / smallest_chart).max(1) as usize;
+        charts.len().div_ceil(per_row) as u32 * smallest_chart <= side
+    };
+    if !fits_minimal(resolution) {
+        let needed = (resolution..=16384)
+            .find(|&side| fits_minimal(side))
+            .unwrap_or(16384);
         return Err(SceneError::Invalid {
             path: scene.source.clone(),
             message: format!(
                 "a {resolution}x{resolution} lightmap cannot hold this scene's {} charts with their gutters: \
                  use a lightmap resolution of at least {}",
                 charts.len(),
-                (gutter_bound * 1.5).ceil() as u32
+                (needed as f64 * 1.5).ceil() as u32
             ),
         });
     }
@@ -481,13 +489,16 @@ fn fit_resolution(
         return Ok((too_small, first));
     }
     let mut large_enough = too_small;
+    let mut growth_steps = 0;
     let mut packed = loop {
         large_enough *= 1.5;
+        growth_steps += 1;
         let (ok, packed) = fits(large_enough);
         if ok {
             break packed;
         }
-        if large_enough > too_small * 1e6 {
+        // 1.5^40 is a 10^7-fold texel size: charts are single texels by then.
+        if growth_steps > 40 {
             return Err(SceneError::Invalid {
                 path: scene.source.clone(),
                 message: format!("no texel size fits a {resolution}x{resolution} lightmap: raise the lightmap resolution"),
@@ -896,6 +907,11 @@ mod tests {
         assert!(Atlas::build(&scene, TexelDensity::MetresPerTexel(0.0)).is_err());
         assert!(Atlas::build(&scene, TexelDensity::MetresPerTexel(f32::NAN)).is_err());
         assert!(Atlas::build(&scene, TexelDensity::TargetResolution(1 << 20)).is_err());
+        // Two charts with gutters need 12 texels; 8 must fail at once with advice.
+        let error = Atlas::build(&scene, TexelDensity::TargetResolution(8))
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("at least"), "{error}");
     }
 
     #[test]

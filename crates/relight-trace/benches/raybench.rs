@@ -10,17 +10,20 @@ use glam::Vec3;
 use relight_trace::bvh::{Bvh, Ray};
 use relight_trace::raybench::{self, RaySets};
 
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
 #[repr(C)]
 struct Timespec {
     seconds: i64,
     nanoseconds: i64,
 }
 
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
 extern "C" {
     fn clock_gettime(clock: i32, time: *mut Timespec) -> i32;
 }
 
 /// CPU time of the calling thread (Linux CLOCK_THREAD_CPUTIME_ID) in seconds.
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
 fn thread_cpu_seconds() -> f64 {
     const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
     let mut time = Timespec {
@@ -30,6 +33,17 @@ fn thread_cpu_seconds() -> f64 {
     // SAFETY: clock_gettime only writes the struct it is given.
     unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut time) };
     time.seconds as f64 + time.nanoseconds as f64 * 1e-9
+}
+
+/// Elsewhere wall time stands in for CPU time.
+#[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]
+fn thread_cpu_seconds() -> f64 {
+    use std::sync::OnceLock;
+    static START: OnceLock<std::time::Instant> = OnceLock::new();
+    START
+        .get_or_init(std::time::Instant::now)
+        .elapsed()
+        .as_secs_f64()
 }
 
 /// Minimum over `repeats` of thread CPU nanoseconds per ray.
