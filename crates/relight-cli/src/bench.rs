@@ -201,11 +201,11 @@ pub fn rays(scene_path: &Path, rays: usize, repeats: usize, quiet: bool) -> Resu
         repeats,
         1,
     );
-    println!(
+    say!(
         "{} triangles, {} threads",
         scene.mesh.triangles.len(),
         rayon::current_num_threads()
     );
-    println!("{report}");
+    say!("{report}");
     Ok(())
 }

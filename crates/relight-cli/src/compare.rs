@@ -19,10 +19,10 @@ pub struct CompareSettings {
     #[arg(long, default_value_t = 4)]
     pub spp: u32,
     /// Paths per pixel for the reference image.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 256)]
     pub reference_spp: u32,
     /// Paths per receiver for the reference lightmap.
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 4096)]
     pub reference_samples: u32,
     /// Indirect bounces of the reference: 0 = direct only.
     #[arg(long, default_value_t = 64)]
@@ -283,7 +283,7 @@ pub fn demo(
             &output.join(&name),
             quiet,
         )?;
-        println!("{table}");
+        say!("{table}");
         summary.push_str(&table);
         summary.push('\n');
     }
@@ -294,7 +294,7 @@ pub fn demo(
     )?;
     std::fs::write(output.join("README.md"), &summary)
         .with_context(|| format!("{}: cannot write", output.display()))?;
-    println!(
+    say!(
         "demo finished in {:.1} s; reports in {}",
         start.elapsed().as_secs_f64(),
         output.display()

@@ -5,6 +5,15 @@
 //! technique (bake, create, update from the lights) -> images and numbers.
 //! Errors are reported through `anyhow` with the file or parameter at fault.
 
+/// `println!` that returns write errors instead of panicking, so a closed
+/// pipe (`relight info scene.toml | head`) ends the program quietly.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        writeln!(std::io::stdout(), $($arg)*)?;
+    }};
+}
+
 mod bench;
 mod compare;
 mod progress;
@@ -321,7 +330,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Techniques => {
             for kind in techniques::kinds() {
                 let bake = if kind.needs_bake() { "bake" } else { "no bake" };
-                println!("{:<12} {:<8} {}", kind.name(), bake, kind.summary());
+                say!("{:<12} {:<8} {}", kind.name(), bake, kind.summary());
             }
             Ok(())
         }
@@ -394,7 +403,7 @@ fn run(cli: Cli) -> Result<()> {
                 ),
             };
             relight_technique::write_bake_atomic(&output, &header, &payload)?;
-            println!(
+            say!(
                 "baked {} in {:.2} s: {} ({} bytes)",
                 kind.name(),
                 start.elapsed().as_secs_f64(),
@@ -413,7 +422,7 @@ fn run(cli: Cli) -> Result<()> {
             let context = load_context(&scene, &options, quiet)?;
             let mut instance = create_technique(&context, &technique, quiet)?;
             let report = bench::run(&context, instance.as_mut(), frames, &Bars::new(quiet))?;
-            println!("{report}");
+            say!("{report}");
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_string_pretty(&report)?)
                     .with_context(|| format!("{}: cannot write", path.display()))?;
@@ -434,7 +443,7 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             let context = load_context(&scene, &options, quiet)?;
             let table = compare::run(&context, &scene, &techniques, &settings, &output, quiet)?;
-            println!("{table}");
+            say!("{table}");
             Ok(())
         }
         Command::Demo {
@@ -446,7 +455,7 @@ fn run(cli: Cli) -> Result<()> {
             kind: GenKind::Atrium { triangles, output },
         } => {
             let scene = relight_scene::generate::write_atrium(&output, triangles)?;
-            println!("wrote {}", scene.display());
+            say!("wrote {}", scene.display());
             Ok(())
         }
     }
@@ -457,22 +466,27 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
     let scene = &context.scene;
     let (lo, hi) = scene.mesh.bounds();
     let atlas = &context.atlas;
-    println!("scene           {}", path.display());
-    println!("triangles       {}", scene.mesh.triangles.len());
-    println!("vertices        {}", scene.mesh.positions.len());
-    println!("materials       {}", scene.materials.len());
-    println!("textures        {}", scene.textures.len());
-    println!(
+    say!("scene           {}", path.display());
+    say!("triangles       {}", scene.mesh.triangles.len());
+    say!("vertices        {}", scene.mesh.positions.len());
+    say!("materials       {}", scene.materials.len());
+    say!("textures        {}", scene.textures.len());
+    say!(
         "lights          {} (+ {} emissive triangles)",
         scene.lights.len(),
         context.emitters.triangles.len()
     );
-    println!(
+    say!(
         "bounds          [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]",
-        lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+        lo.x,
+        lo.y,
+        lo.z,
+        hi.x,
+        hi.y,
+        hi.z
     );
-    println!("surface area    {:.3} m^2", scene.mesh.total_area());
-    println!(
+    say!("surface area    {:.3} m^2", scene.mesh.total_area());
+    say!(
         "atlas           {} x {} texels, {} charts{}",
         atlas.width,
         atlas.height,
@@ -483,34 +497,34 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
             ""
         }
     );
-    println!("texel size      {:.4} m", atlas.metres_per_texel);
-    println!("receivers       {}", atlas.receivers.len());
-    println!("coverage        {:.1} %", atlas.coverage() * 100.0);
-    println!(
+    say!("texel size      {:.4} m", atlas.metres_per_texel);
+    say!("receivers       {}", atlas.receivers.len());
+    say!("coverage        {:.1} %", atlas.coverage() * 100.0);
+    say!(
         "BVH             {} nodes, {:.1} MiB, built in {:.1} ms",
         context.bvh.node_count(),
         context.bvh.memory_bytes() as f64 / 1048576.0,
         context.bvh_build_time.as_secs_f64() * 1e3
     );
-    println!(
+    say!(
         "atlas build     {:.1} ms",
         context.atlas_build_time.as_secs_f64() * 1e3
     );
     for warning in &scene.warnings {
-        println!("warning         {warning}");
+        say!("warning         {warning}");
     }
     if let Some(bake) = bake {
         let (header, payload) = relight_technique::read_bake(bake)?;
         let matches =
             header.scene_fingerprint == relight_technique::scene_fingerprint(scene, atlas);
-        println!(
+        say!(
             "bake            {} ({} payload version {}, {} bytes)",
             bake.display(),
             header.technique,
             header.payload_version,
             payload.len()
         );
-        println!(
+        say!(
             "bake scene      {}",
             if matches {
                 "matches this scene and lightmap"
@@ -527,9 +541,10 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
                 &relight_technique::NoProgress,
             )?;
             for entry in technique.memory() {
-                println!(
+                say!(
                     "memory          {:<28} {:>12} bytes",
-                    entry.buffer, entry.bytes
+                    entry.buffer,
+                    entry.bytes
                 );
             }
         }

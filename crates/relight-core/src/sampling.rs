@@ -76,6 +76,25 @@ impl SampleStream {
     }
 }
 
+/// Sample `index` of `total` stratified over a square grid of
+/// floor(sqrt(total))^2 cells (jittered inside its cell; indices past the grid
+/// are uniform), then toroidally shifted by `offset` (Cranley-Patterson) so
+/// that different work items use decorrelated patterns. Estimates that sum
+/// all `total` samples keep their expectation and lose most of the variance
+/// of smooth integrands.
+pub fn stratified_square(index: u32, total: u32, offset: Vec2, rng: &mut Pcg32) -> Vec2 {
+    let side = (total as f64).sqrt().floor().max(1.0) as u32;
+    let jitter = rng.next_vec2();
+    let point = if index < side * side {
+        (Vec2::new((index % side) as f32, (index / side) as f32) + jitter) / side as f32
+    } else {
+        jitter
+    };
+    let shifted = point + offset;
+    // fract keeps [0,1); the min guards the rounding of values just below 1.
+    Vec2::new(shifted.x.fract(), shifted.y.fract()).min(Vec2::splat(1.0 - f32::EPSILON / 2.0))
+}
+
 /// Van der Corput radical inverse in `base`, for Halton sequences.
 pub fn radical_inverse(base: u32, mut index: u64) -> f64 {
     let inverse_base = 1.0 / base as f64;
@@ -207,6 +226,22 @@ mod tests {
             assert!(tangent.dot(bitangent).abs() < 1e-5);
             assert!((tangent.length() - 1.0).abs() < 1e-5);
         }
+    }
+
+    #[test]
+    fn stratified_square_covers_every_cell_once() {
+        let mut rng = Pcg32::new(4, 4);
+        let total = 64;
+        let mut cells = [0u32; 64];
+        for index in 0..total {
+            let point = stratified_square(index, total, Vec2::ZERO, &mut rng);
+            assert!(point.min_element() >= 0.0 && point.max_element() < 1.0);
+            cells[(point.y * 8.0) as usize * 8 + (point.x * 8.0) as usize] += 1;
+        }
+        assert!(cells.iter().all(|&count| count == 1));
+        // Shifted patterns stay in the unit square.
+        let shifted = stratified_square(63, total, Vec2::new(0.99, 0.5), &mut rng);
+        assert!(shifted.min_element() >= 0.0 && shifted.max_element() < 1.0);
     }
 
     #[test]

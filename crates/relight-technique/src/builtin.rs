@@ -6,8 +6,8 @@ use crate::{
     Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint, Technique,
     TechniqueError, TechniqueKind,
 };
-use glam::Vec3;
-use relight_core::sampling::SampleStream;
+use glam::{Vec2, Vec3};
+use relight_core::sampling::{stratified_square, SampleStream};
 use relight_core::Rgb;
 use relight_scene::Light;
 use relight_trace::path::{PathSettings, PathTracer};
@@ -131,6 +131,13 @@ pub struct ReferenceLightmap {
 }
 
 /// Path traces indirect irradiance at every receiver of `context`.
+///
+/// The estimate is the mean of two independent halves (different seeds),
+/// each with first-bounce directions stratified over its own samples.
+/// Stratification makes the usual iid variance formula wrong, so the
+/// standard error comes from the halves instead: |A - B| / 2 has the
+/// expected square of the mean's variance. Per receiver that is a one-sample
+/// estimate; summed over many receivers it measures the noise well.
 pub fn reference_receiver_irradiance(
     context: &SceneContext,
     lights: &[Light],
@@ -139,58 +146,53 @@ pub fn reference_receiver_irradiance(
     progress: &dyn Progress,
 ) -> ReferenceLightmap {
     let direct = context.direct();
-    let tracer = PathTracer::new(&direct, settings);
     let receivers = &context.atlas.receivers;
     let count = receivers.len();
-    let mut sums = vec![[0.0f64; 3]; count];
-    let mut squares = vec![[0.0f64; 3]; count];
+    let half = (samples / 2).max(1);
     // Passes of 16 samples keep the progress bar moving; the sum is the
     // same as one pass because every sample has its own stream.
-    let pass = 16u32.min(samples.max(1));
-    progress.start("reference lightmap", samples as u64);
-    let mut done = 0u32;
-    while done < samples {
-        let this_pass = pass.min(samples - done);
-        let mut pass_sums = vec![[0.0f64; 3]; count];
-        for sample in done..done + this_pass {
+    let pass = 16u32.min(half);
+    progress.start("reference lightmap", 2 * half as u64);
+    let mut halves = [vec![[0.0f64; 3]; count], vec![[0.0f64; 3]; count]];
+    for (index, sums) in halves.iter_mut().enumerate() {
+        let seed = settings.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let tracer = PathTracer::new(&direct, PathSettings { seed, ..settings });
+        let mut done = 0u32;
+        while done < half {
+            let this_pass = pass.min(half - done);
             tracer.indirect_irradiance_sums(
                 lights,
                 &receivers.positions,
                 &receivers.normals,
-                sample,
-                1,
-                &mut pass_sums,
+                done,
+                this_pass,
+                half,
+                sums,
             );
-            for index in 0..count {
-                for channel in 0..3 {
-                    sums[index][channel] += pass_sums[index][channel];
-                    squares[index][channel] +=
-                        pass_sums[index][channel] * pass_sums[index][channel];
-                }
-                pass_sums[index] = [0.0; 3];
-            }
+            done += this_pass;
+            progress.advance(this_pass as u64);
         }
-        done += this_pass;
-        progress.advance(this_pass as u64);
     }
     progress.finish();
-    let n = samples.max(1) as f64;
-    let mut result = ReferenceLightmap::default();
-    for index in 0..count {
-        let mean: [f64; 3] = std::array::from_fn(|c| sums[index][c] / n);
-        let error: [f64; 3] = std::array::from_fn(|c| {
-            let variance =
-                (squares[index][c] / n - mean[c] * mean[c]).max(0.0) * n / (n - 1.0).max(1.0);
-            (variance / n).sqrt()
-        });
-        result
-            .mean
-            .push(Rgb::new(mean[0] as f32, mean[1] as f32, mean[2] as f32));
-        result
-            .standard_error
-            .push(Rgb::new(error[0] as f32, error[1] as f32, error[2] as f32));
+    let scale = 1.0 / half as f64;
+    let to_rgb = |values: [f64; 3]| Rgb::new(values[0] as f32, values[1] as f32, values[2] as f32);
+    let [first, second] = &halves;
+    ReferenceLightmap {
+        mean: (0..count)
+            .map(|i| {
+                to_rgb(std::array::from_fn(|c| {
+                    0.5 * (first[i][c] + second[i][c]) * scale
+                }))
+            })
+            .collect(),
+        standard_error: (0..count)
+            .map(|i| {
+                to_rgb(std::array::from_fn(|c| {
+                    0.5 * (first[i][c] - second[i][c]).abs() * scale
+                }))
+            })
+            .collect(),
     }
-    result
 }
 
 /// `reference`: path-traced indirect light, the ground truth.
@@ -284,13 +286,15 @@ impl Technique for Reference {
                 ^ ((position.z.to_bits() as u64) << 42),
         );
         let mut sum = Rgb::ZERO;
-        for sample in 0..self.params.space_samples {
+        let samples = self.params.space_samples;
+        for sample in 0..samples {
             let mut rng = SampleStream::new(self.params.seed, key, sample as u64);
+            let first_bounce = stratified_square(sample, samples, Vec2::ZERO, &mut rng);
             sum += tracer.indirect_irradiance_sample(
                 &self.lights,
                 position,
                 normal,
-                0,
+                first_bounce,
                 &mut rng,
                 key ^ sample as u64,
             );
