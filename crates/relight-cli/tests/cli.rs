@@ -165,3 +165,53 @@ fn bench_writes_json_with_stages() {
     assert!(value["total"]["median_ms"].as_f64().unwrap() > 0.0);
     assert!(value["memory_total_bytes"].as_u64().unwrap() > 0);
 }
+
+#[test]
+fn reference_render_is_identical_on_one_and_two_threads() {
+    let folder = tempfile::tempdir().unwrap();
+    let mut images = Vec::new();
+    for threads in ["1", "2"] {
+        let output = folder.path().join(format!("threads{threads}.exr"));
+        run_ok(
+            relight()
+                .args([
+                    "render",
+                    "-q",
+                    "--threads",
+                    threads,
+                    "--spp",
+                    "2",
+                    "--technique",
+                    "reference",
+                ])
+                .arg(scene("cornell-box"))
+                .arg("-o")
+                .arg(&output),
+        );
+        images.push(std::fs::read(&output).unwrap());
+    }
+    assert!(
+        images[0] == images[1],
+        "renders differ between thread counts"
+    );
+}
+
+#[test]
+fn closed_stdout_is_not_an_error() {
+    use std::process::Stdio;
+    let mut child = relight()
+        .args(["info", "-q"])
+        .arg(scene("corridor"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Closing our end before relight writes makes its writes fail with EPIPE.
+    drop(child.stdout.take());
+    let output = child.wait_with_output().unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}

@@ -70,16 +70,24 @@ impl Image {
         }
     }
 
+    /// Writes linear 32-bit float RGB. Compression runs on one thread:
+    /// parallel writers store chunks in completion order, and relight's
+    /// outputs must be the same bytes on any thread count.
     pub fn write_exr(&self, path: &Path) -> Result<(), ImageError> {
+        use exr::prelude::WritableImage;
         let width = self.width as usize;
-        exr::prelude::write_rgb_file(path, width, self.height as usize, |x, y| {
-            let pixel = self.pixels[y * width + x];
+        let channels = exr::prelude::SpecificChannels::rgb(|position: exr::prelude::Vec2<usize>| {
+            let pixel = self.pixels[position.y() * width + position.x()];
             (pixel.x, pixel.y, pixel.z)
-        })
-        .map_err(|error| ImageError::Write {
-            path: path.to_path_buf(),
-            message: error.to_string(),
-        })
+        });
+        exr::prelude::Image::from_channels((width, self.height as usize), channels)
+            .write()
+            .non_parallel()
+            .to_file(path)
+            .map_err(|error| ImageError::Write {
+                path: path.to_path_buf(),
+                message: error.to_string(),
+            })
     }
 
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<(), ImageError> {
