@@ -259,7 +259,7 @@ pub fn demo(
         .filter(|name| name != "reference")
         .collect();
     let options = crate::SceneOptions {
-        lightmap_resolution: 128,
+        lightmap_resolution: None,
         texel_size: None,
         area_samples: 16,
     };

@@ -49,9 +49,10 @@ struct Cli {
 /// Options that shape the shared scene data.
 #[derive(clap::Args, Clone)]
 struct SceneOptions {
-    /// Lightmap atlas size (texels on the longer side) when no density is given.
-    #[arg(long, default_value_t = 128)]
-    lightmap_resolution: u32,
+    /// Lightmap atlas size (texels on the longer side); default: automatic
+    /// (128, or the power of two the scene's charts need).
+    #[arg(long)]
+    lightmap_resolution: Option<u32>,
     /// Lightmap texel size in metres (overrides --lightmap-resolution).
     #[arg(long)]
     texel_size: Option<f32>,
@@ -190,13 +191,13 @@ impl SceneOptions {
                 bail!("--texel-size must be a positive number of metres, got {size}")
             }
             Some(size) => TexelDensity::MetresPerTexel(size),
-            None if !(8..=16384).contains(&self.lightmap_resolution) => {
-                bail!(
-                    "--lightmap-resolution must be between 8 and 16384, got {}",
-                    self.lightmap_resolution
-                )
-            }
-            None => TexelDensity::TargetResolution(self.lightmap_resolution),
+            None => match self.lightmap_resolution {
+                Some(resolution) if !(8..=16384).contains(&resolution) => {
+                    bail!("--lightmap-resolution must be between 8 and 16384, got {resolution}")
+                }
+                Some(resolution) => TexelDensity::TargetResolution(resolution),
+                None => TexelDensity::Automatic { minimum: 128 },
+            },
         };
         Ok(ContextSettings {
             lightmap,

@@ -39,11 +39,15 @@ pub enum TexelDensity {
     MetresPerTexel(f32),
     /// Aim for an atlas of about this many texels on its longer side.
     TargetResolution(u32),
+    /// At least `minimum` texels on a side, raised to the power of two that
+    /// leaves every chart at least as much room as its gutter ring, so scenes
+    /// with thousands of charts (Sponza) work without tuning.
+    Automatic { minimum: u32 },
 }
 
 impl Default for TexelDensity {
     fn default() -> Self {
-        TexelDensity::TargetResolution(256)
+        TexelDensity::Automatic { minimum: 128 }
     }
 }
 
@@ -130,6 +134,13 @@ impl Atlas {
             return Ok(atlas);
         }
         let charts = grow_charts(scene);
+        let density = match density {
+            TexelDensity::Automatic { minimum } => {
+                let crowded = (2 * minimal_resolution(charts.len())).next_power_of_two();
+                TexelDensity::TargetResolution(minimum.max(crowded).min(16384))
+            }
+            fixed => fixed,
+        };
         let (metres_per_texel, (width, height, triangle_uvs)) = match density {
             TexelDensity::MetresPerTexel(metres) => {
                 (metres, pack_charts(scene, &charts, metres, None))
@@ -137,6 +148,7 @@ impl Atlas {
             TexelDensity::TargetResolution(resolution) => {
                 fit_resolution(scene, &charts, resolution)?
             }
+            TexelDensity::Automatic { .. } => unreachable!("resolved above"),
         };
         if (width as u64) * (height as u64) > 16384 * 16384 {
             return Err(SceneError::Invalid {
@@ -162,6 +174,7 @@ impl Atlas {
         }
         let resolution = match density {
             TexelDensity::TargetResolution(resolution) => resolution,
+            TexelDensity::Automatic { minimum } => minimum,
             TexelDensity::MetresPerTexel(metres) => {
                 ((mesh.total_area() as f32).sqrt() / metres / 0.7)
                     .ceil()
@@ -331,8 +344,22 @@ impl Atlas {
 fn density_is_invalid(density: TexelDensity) -> bool {
     match density {
         TexelDensity::MetresPerTexel(metres) => !(metres.is_finite() && metres > 0.0),
-        TexelDensity::TargetResolution(resolution) => !(8..=16384).contains(&resolution),
+        TexelDensity::TargetResolution(resolution)
+        | TexelDensity::Automatic {
+            minimum: resolution,
+        } => !(8..=16384).contains(&resolution),
     }
+}
+
+/// Smallest square side that holds `chart_count` charts shrunk to one texel
+/// each, with their gutter rings, in shelves: no texel size fits below it.
+fn minimal_resolution(chart_count: usize) -> u32 {
+    let smallest_chart = 2 * GUTTER_TEXELS + 2;
+    let fits = |side: u32| {
+        let per_row = (side / smallest_chart).max(1) as usize;
+        chart_count.div_ceil(per_row) as u32 * smallest_chart <= side
+    };
+    (8..=16384).find(|&side| fits(side)).unwrap_or(16384)
 }
 
 /// A chart: triangles and the plane basis they are projected onto.
@@ -458,21 +485,14 @@ fn fit_resolution(
     resolution: u32,
 ) -> Result<(f32, (u32, u32, Vec<[Vec2; 3]>)), SceneError> {
     // However large the texels, every chart keeps its gutter ring and one
-    // texel: shelves of such minimal charts bound what any texel size can fit.
-    let smallest_chart = 2 * GUTTER_TEXELS + 2;
-    let fits_minimal = |side: u32| {
-        let per_row = (side / smallest_chart).max(1) as usize;
-        charts.len().div_ceil(per_row) as u32 * smallest_chart <= side
-    };
-    if !fits_minimal(resolution) {
-        let needed = (resolution..=16384)
-            .find(|&side| fits_minimal(side))
-            .unwrap_or(16384);
+    // texel: below this side no texel size fits.
+    let needed = minimal_resolution(charts.len());
+    if needed > resolution {
         return Err(SceneError::Invalid {
             path: scene.source.clone(),
             message: format!(
                 "a {resolution}x{resolution} lightmap cannot hold this scene's {} charts with their gutters: \
-                 use a lightmap resolution of at least {}",
+                 use a lightmap resolution of at least {}, or leave it automatic",
                 charts.len(),
                 (needed as f64 * 1.5).ceil() as u32
             ),

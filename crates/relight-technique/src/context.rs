@@ -16,7 +16,7 @@ pub struct ContextSettings {
 impl Default for ContextSettings {
     fn default() -> Self {
         Self {
-            lightmap: TexelDensity::TargetResolution(128),
+            lightmap: TexelDensity::default(),
             direct: DirectSettings::default(),
         }
     }
