@@ -238,16 +238,23 @@ impl<'a> DirectLight<'a> {
         if cosine <= 0.0 || distance_squared <= 0.0 {
             return Rgb::ZERO;
         }
+        if !self.visible(origin, offset) {
+            return Rgb::ZERO;
+        }
+        // E = I cos(theta) / d^2, with cos = n.offset / d.
+        intensity * (scale * cosine / (distance_squared * distance_squared.sqrt()))
+    }
+
+    /// Shadow ray from `origin` to `origin + offset`, stopping just short of
+    /// the target so the light's own surface does not occlude it.
+    #[inline]
+    fn visible(&self, origin: Vec3, offset: Vec3) -> bool {
         let ray = Ray {
             origin,
             direction: offset,
             t_max: 1.0 - 1e-4,
         };
-        if self.bvh.occluded(&ray) {
-            return Rgb::ZERO;
-        }
-        // E = I cos(theta) / d^2, with cos = n.offset / d.
-        intensity * (scale * cosine / (distance_squared * distance_squared.sqrt()))
+        !self.bvh.occluded(&ray)
     }
 
     fn area_lights(&self, origin: Vec3, normal: Vec3, point_key: u64) -> Rgb {
@@ -289,12 +296,7 @@ impl<'a> DirectLight<'a> {
         if cosine_receiver <= 0.0 || cosine_emitter <= 0.0 {
             return Rgb::ZERO;
         }
-        let ray = Ray {
-            origin,
-            direction: offset,
-            t_max: 1.0 - 1e-4,
-        };
-        if self.bvh.occluded(&ray) {
+        if !self.visible(origin, offset) {
             return Rgb::ZERO;
         }
         self.emitters.radiance[index]

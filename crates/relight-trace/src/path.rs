@@ -454,36 +454,29 @@ mod tests {
         }
     }
 
-    #[test]
-    fn closed_emitting_sphere_converges_to_emission_over_one_minus_albedo() {
-        // Radiance inside any closed surface of albedo a and emission Le is
-        // Le / (1 - a) everywhere (geometric series of bounces).
-        let (albedo, emission) = (0.5f32, 1.0f32);
-        let scene = closed_sphere(albedo, emission);
+    /// Mean radiance seen from `origin` inside `scene` over `samples`
+    /// uniformly distributed camera rays, 8 area-light samples per vertex.
+    fn mean_radiance(
+        scene: &Scene,
+        max_bounces: u32,
+        origin: Vec3,
+        samples: u32,
+        seed: u64,
+    ) -> f64 {
         let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
-        let emitters = crate::direct::Emitters::from_scene(&scene);
-        let direct = DirectLight::new(
-            &scene,
-            &bvh,
-            &emitters,
-            DirectSettings {
-                area_light_samples: 8,
-                ..Default::default()
-            },
-        );
-        let tracer = PathTracer::new(
-            &direct,
-            PathSettings {
-                area_light_samples: 8,
-                ..Default::default()
-            },
-        );
+        let emitters = crate::direct::Emitters::from_scene(scene);
+        let direct = DirectLight::new(scene, &bvh, &emitters, DirectSettings::default());
+        let settings = PathSettings {
+            max_bounces,
+            area_light_samples: 8,
+            ..Default::default()
+        };
+        let tracer = PathTracer::new(&direct, settings);
         let mut sum = 0.0f64;
-        let samples = 20_000u32;
         for sample in 0..samples {
-            let mut rng = SampleStream::new(7, 0, sample as u64);
+            let mut rng = SampleStream::new(seed, 0, sample as u64);
             let ray = Ray {
-                origin: Vec3::new(0.1, 0.2, -0.3),
+                origin,
                 direction: relight_core::sampling::uniform_sphere(rng.next_vec2()),
                 t_max: f32::INFINITY,
             };
@@ -491,7 +484,16 @@ mod tests {
             let split = tracer.camera_sample(&[], &ray, first_bounce, &mut rng, sample as u64);
             sum += (split.direct + split.indirect).x as f64;
         }
-        let estimate = sum / samples as f64;
+        sum / samples as f64
+    }
+
+    #[test]
+    fn closed_emitting_sphere_converges_to_emission_over_one_minus_albedo() {
+        // Radiance inside any closed surface of albedo a and emission Le is
+        // Le / (1 - a) everywhere (geometric series of bounces).
+        let (albedo, emission) = (0.5f32, 1.0f32);
+        let scene = closed_sphere(albedo, emission);
+        let estimate = mean_radiance(&scene, 64, Vec3::new(0.1, 0.2, -0.3), 20_000, 7);
         let expected = emission as f64 / (1.0 - albedo as f64);
         // The radiance field is uniform, so only Russian roulette (survival
         // 0.5 per bounce here) makes paths differ: per-sample deviation is
@@ -508,40 +510,8 @@ mod tests {
         // Albedo 1 with only bounded bounces: radiance after n bounces in a
         // closed surface is exactly (n + 1) Le (emission plus n full reflections).
         let scene = closed_sphere(1.0, 1.0);
-        let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
-        let emitters = crate::direct::Emitters::from_scene(&scene);
-        let direct = DirectLight::new(
-            &scene,
-            &bvh,
-            &emitters,
-            DirectSettings {
-                area_light_samples: 8,
-                ..Default::default()
-            },
-        );
         for max_bounces in [0u32, 2, 5] {
-            let tracer = PathTracer::new(
-                &direct,
-                PathSettings {
-                    max_bounces,
-                    area_light_samples: 8,
-                    ..Default::default()
-                },
-            );
-            let mut sum = 0.0f64;
-            let samples = 4000u32;
-            for sample in 0..samples {
-                let mut rng = SampleStream::new(3, 1, sample as u64);
-                let ray = Ray {
-                    origin: Vec3::ZERO,
-                    direction: relight_core::sampling::uniform_sphere(rng.next_vec2()),
-                    t_max: f32::INFINITY,
-                };
-                let first_bounce = rng.next_vec2();
-                let split = tracer.camera_sample(&[], &ray, first_bounce, &mut rng, sample as u64);
-                sum += (split.direct + split.indirect).x as f64;
-            }
-            let estimate = sum / samples as f64;
+            let estimate = mean_radiance(&scene, max_bounces, Vec3::ZERO, 4000, 3);
             // Emission (1) + direct (1) + max_bounces indirect bounces (1 each).
             let expected = 2.0 + max_bounces as f64;
             // On a sphere each NEE term is near-constant (facets are not a
