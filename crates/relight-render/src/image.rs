@@ -76,10 +76,11 @@ impl Image {
     pub fn write_exr(&self, path: &Path) -> Result<(), ImageError> {
         use exr::prelude::WritableImage;
         let width = self.width as usize;
-        let channels = exr::prelude::SpecificChannels::rgb(|position: exr::prelude::Vec2<usize>| {
-            let pixel = self.pixels[position.y() * width + position.x()];
-            (pixel.x, pixel.y, pixel.z)
-        });
+        let channels =
+            exr::prelude::SpecificChannels::rgb(|position: exr::prelude::Vec2<usize>| {
+                let pixel = self.pixels[position.y() * width + position.x()];
+                (pixel.x, pixel.y, pixel.z)
+            });
         exr::prelude::Image::from_channels((width, self.height as usize), channels)
             .write()
             .non_parallel()
