@@ -176,6 +176,9 @@ pub struct Scene {
     pub source: PathBuf,
     /// Non-fatal problems met while loading (missing MTL, dropped triangles).
     pub warnings: Vec<String>,
+    /// Raw per-technique tables of the scene file (`[srp]`, `[[dynamic]]`,
+    /// ...), parsed by the technique that owns them.
+    pub technique_sections: std::collections::BTreeMap<String, toml::Value>,
 }
 
 impl Scene {

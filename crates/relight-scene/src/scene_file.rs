@@ -486,6 +486,7 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         environment: file.environment,
         source: file.path,
         warnings,
+        technique_sections: file.extra,
     })
 }
 

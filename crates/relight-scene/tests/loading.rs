@@ -98,6 +98,11 @@ name = "door"
     assert_eq!(scene.camera, camera);
     assert_eq!(scene.mesh.triangles.len(), 2);
     assert!(scene.warnings.is_empty(), "{:?}", scene.warnings);
+    // Technique sections reach the scene for the techniques to parse.
+    assert_eq!(
+        scene.technique_sections["srp"]["probes"].as_integer(),
+        Some(64)
+    );
 }
 
 #[test]
