@@ -32,6 +32,9 @@ pub struct CompareSettings {
     /// Update runs timed per technique (median reported).
     #[arg(long, default_value_t = 5)]
     pub timing_frames: u32,
+    /// Technique parameter, repeatable: --set TECHNIQUE.key=value (e.g. prm.top_k=8).
+    #[arg(long = "set", value_name = "TECHNIQUE.KEY=VALUE")]
+    pub set: Vec<String>,
 }
 
 struct Row {
@@ -58,6 +61,14 @@ pub fn run(
         .iter()
         .map(|name| techniques::find(name.trim()))
         .collect::<Result<Vec<_>>>()?;
+    for pair in &settings.set {
+        let known = pair
+            .split_once('.')
+            .is_some_and(|(name, _)| kinds.iter().any(|kind| kind.name() == name));
+        if !known {
+            bail!("--set {pair}: name a compared technique, as in --set prm.top_k=8");
+        }
+    }
     if kinds.iter().any(|kind| kind.name() == "reference") {
         bail!("--techniques: 'reference' is what the others are compared with; leave it out");
     }
@@ -111,10 +122,15 @@ pub fn run(
 
     let mut rows = Vec::new();
     for kind in kinds {
+        let prefix = format!("{}.", kind.name());
         let options = crate::TechniqueOptions {
             technique: kind.name().to_string(),
             bake: None,
-            set: Vec::new(),
+            set: settings
+                .set
+                .iter()
+                .filter_map(|pair| pair.strip_prefix(&prefix).map(str::to_string))
+                .collect(),
         };
         let mut technique = crate::create_technique(context, &options, quiet)?;
         let mut update_ms = Vec::new();

@@ -4,7 +4,7 @@
 use relight_technique::{DirectKind, ReferenceKind, TechniqueKind};
 
 pub fn kinds() -> &'static [&'static dyn TechniqueKind] {
-    &[&DirectKind, &ReferenceKind]
+    &[&DirectKind, &ReferenceKind, &relight_prm::PrmKind]
 }
 
 pub fn find(name: &str) -> anyhow::Result<&'static dyn TechniqueKind> {

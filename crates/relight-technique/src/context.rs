@@ -7,19 +7,10 @@ use relight_trace::Bvh;
 use std::time::{Duration, Instant};
 
 /// Settings that shape the shared scene data.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ContextSettings {
     pub lightmap: TexelDensity,
     pub direct: DirectSettings,
-}
-
-impl Default for ContextSettings {
-    fn default() -> Self {
-        Self {
-            lightmap: TexelDensity::default(),
-            direct: DirectSettings::default(),
-        }
-    }
 }
 
 /// Scene, BVH, lightmap atlas and emitter table, built once.

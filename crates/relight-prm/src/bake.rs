@@ -1,0 +1,515 @@
+//! The PRM bake: entry points, their clustering, light paths and panes.
+
+use crate::PrmParams;
+use glam::{Vec2, Vec3};
+use half::f16;
+use rayon::prelude::*;
+use relight_core::sampling::{
+    cosine_hemisphere_around, radical_inverse, uniform_triangle, SampleStream,
+};
+use relight_core::{luminance, Rgb};
+use relight_scene::Scene;
+use relight_technique::{Progress, SceneContext, TechniqueError};
+use relight_trace::Ray;
+
+/// Payload layout version; bump when the encoding changes.
+const PAYLOAD_VERSION: u32 = 1;
+
+/// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
+pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
+    clusters * receivers * 3 * 2
+}
+
+/// Everything the run time needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PrmBake {
+    pub receiver_count: usize,
+    pub entry_positions: Vec<Vec3>,
+    pub entry_normals: Vec<Vec3>,
+    /// Cluster of each entry point.
+    pub entry_clusters: Vec<u32>,
+    pub cluster_count: usize,
+    /// Mean position and normal of each cluster (for points in space).
+    pub cluster_centres: Vec<Vec3>,
+    pub cluster_normals: Vec<Vec3>,
+    /// Sum over the cluster's entries of albedo times represented area: the
+    /// flux per unit irradiance its entry points reflect.
+    pub cluster_reflectance_area: Vec<Rgb>,
+    /// Disc radius squared of one entry point's area (singularity guard).
+    pub disc_radius_squared: f32,
+    /// Cluster-major panes: `panes[(cluster * receivers + receiver) * 3 + channel]`,
+    /// indirect irradiance per unit irradiance at the cluster's entries.
+    pub panes: Vec<f16>,
+}
+
+/// A virtual point light on a light path.
+struct VirtualLight {
+    position: Vec3,
+    /// Normal on the side the light leaves from.
+    normal: Vec3,
+    /// Flux per unit entry irradiance.
+    flux: Rgb,
+}
+
+impl PrmBake {
+    pub fn build(
+        context: &SceneContext,
+        params: &PrmParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let receivers = &context.atlas.receivers;
+        let receiver_count = receivers.len();
+        let pane_bytes = estimate_pane_bytes(params.clusters as u64, receiver_count as u64);
+        // The bake also holds one f32 pane per worker thread.
+        let peak = pane_bytes + rayon::current_num_threads() as u64 * receiver_count as u64 * 12;
+        if peak > params.max_memory_mib * 1024 * 1024 {
+            return Err(TechniqueError::Other(format!(
+                "PRM panes would need {:.0} MiB ({} clusters x {} texels x 6 bytes) over the limit of {} MiB: \
+                 lower --set clusters=N or --lightmap-resolution, or raise --set max_memory_mib=N",
+                peak as f64 / 1048576.0,
+                params.clusters,
+                receiver_count,
+                params.max_memory_mib
+            )));
+        }
+        let scene = &context.scene;
+        let total_area = scene.mesh.total_area() as f32;
+        let entries = sample_entries(scene, params.entries as usize)?;
+        let (lo, hi) = scene.mesh.bounds();
+        let diagonal = (hi - lo).length().max(1e-6);
+        let clustering = cluster_entries(
+            &entries.positions,
+            &entries.normals,
+            params.clusters as usize,
+            params.normal_weight,
+            diagonal,
+        );
+        let area_per_entry = total_area / params.entries as f32;
+        let disc_radius_squared = area_per_entry / std::f32::consts::PI;
+
+        // Members of each cluster, in entry order, for deterministic sums.
+        let mut members: Vec<Vec<u32>> = vec![Vec::new(); params.clusters as usize];
+        for (entry, &cluster) in clustering.assignment.iter().enumerate() {
+            members[cluster as usize].push(entry as u32);
+        }
+        let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+        progress.start("prm panes", params.clusters as u64);
+        let mut panes = vec![f16::ZERO; params.clusters as usize * receiver_count * 3];
+        panes
+            .par_chunks_mut(receiver_count * 3)
+            .zip(members.par_iter())
+            .for_each(|(pane_out, cluster_members)| {
+                let mut pane = vec![Rgb::ZERO; receiver_count];
+                for &entry in cluster_members {
+                    let lights = light_path_vertices(
+                        context,
+                        &entries,
+                        entry as usize,
+                        area_per_entry,
+                        params,
+                        epsilon,
+                    );
+                    for light in &lights {
+                        gather(context, light, disc_radius_squared, epsilon, &mut pane);
+                    }
+                }
+                for (out, value) in pane_out.chunks_exact_mut(3).zip(&pane) {
+                    out[0] = f16::from_f32(value.x);
+                    out[1] = f16::from_f32(value.y);
+                    out[2] = f16::from_f32(value.z);
+                }
+                progress.advance(1);
+            });
+        progress.finish();
+
+        let mut cluster_reflectance_area = vec![Rgb::ZERO; params.clusters as usize];
+        for (entry, &cluster) in clustering.assignment.iter().enumerate() {
+            cluster_reflectance_area[cluster as usize] += entries.albedos[entry] * area_per_entry;
+        }
+        Ok(Self {
+            receiver_count,
+            entry_positions: entries.positions,
+            entry_normals: entries.normals,
+            entry_clusters: clustering.assignment,
+            cluster_count: params.clusters as usize,
+            cluster_centres: clustering.centres,
+            cluster_normals: clustering.normals,
+            cluster_reflectance_area,
+            disc_radius_squared,
+            panes,
+        })
+    }
+
+    /// Little-endian payload for the bake file.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut bytes =
+            Vec::with_capacity(self.panes.len() * 2 + self.entry_positions.len() * 28 + 64);
+        let put_u32 =
+            |bytes: &mut Vec<u8>, value: u32| bytes.extend_from_slice(&value.to_le_bytes());
+        put_u32(&mut bytes, PAYLOAD_VERSION);
+        put_u32(&mut bytes, self.receiver_count as u32);
+        put_u32(&mut bytes, self.entry_positions.len() as u32);
+        put_u32(&mut bytes, self.cluster_count as u32);
+        bytes.extend_from_slice(&self.disc_radius_squared.to_le_bytes());
+        let put_vectors = |bytes: &mut Vec<u8>, values: &[Vec3]| {
+            for value in values {
+                for component in value.to_array() {
+                    bytes.extend_from_slice(&component.to_le_bytes());
+                }
+            }
+        };
+        put_vectors(&mut bytes, &self.entry_positions);
+        put_vectors(&mut bytes, &self.entry_normals);
+        put_vectors(&mut bytes, &self.cluster_centres);
+        put_vectors(&mut bytes, &self.cluster_normals);
+        put_vectors(&mut bytes, &self.cluster_reflectance_area);
+        for cluster in &self.entry_clusters {
+            bytes.extend_from_slice(&cluster.to_le_bytes());
+        }
+        for value in &self.panes {
+            bytes.extend_from_slice(&value.to_bits().to_le_bytes());
+        }
+        bytes
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = Reader { bytes, cursor: 0 };
+        let version = reader.u32()?;
+        if version != PAYLOAD_VERSION {
+            return Err(corrupt(&format!(
+                "PRM payload version {version}, this relight reads {PAYLOAD_VERSION}"
+            )));
+        }
+        let receiver_count = reader.u32()? as usize;
+        let entry_count = reader.u32()? as usize;
+        let cluster_count = reader.u32()? as usize;
+        let disc_radius_squared = reader.f32()?;
+        // Every size is checked against the bytes left before allocating.
+        let pane_values = cluster_count
+            .checked_mul(receiver_count)
+            .and_then(|count| count.checked_mul(3))
+            .ok_or_else(|| corrupt("pane size overflows"))?;
+        let needed = entry_count as u128 * (12 * 2 + 4)
+            + cluster_count as u128 * 36
+            + pane_values as u128 * 2;
+        if needed > (bytes.len() - reader.cursor) as u128 {
+            return Err(corrupt("payload shorter than its sizes say"));
+        }
+        let entry_positions = reader.vectors(entry_count)?;
+        let entry_normals = reader.vectors(entry_count)?;
+        let cluster_centres = reader.vectors(cluster_count)?;
+        let cluster_normals = reader.vectors(cluster_count)?;
+        let cluster_reflectance_area = reader.vectors(cluster_count)?;
+        let entry_clusters = (0..entry_count)
+            .map(|_| reader.u32())
+            .collect::<Result<Vec<_>, _>>()?;
+        if entry_clusters
+            .iter()
+            .any(|&cluster| cluster as usize >= cluster_count)
+        {
+            return Err(corrupt(
+                "an entry point names a cluster that does not exist",
+            ));
+        }
+        let panes = (0..pane_values)
+            .map(|_| {
+                reader
+                    .take(2)
+                    .map(|b| f16::from_bits(u16::from_le_bytes([b[0], b[1]])))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        if reader.cursor != bytes.len() {
+            return Err(corrupt("trailing bytes after the panes"));
+        }
+        Ok(Self {
+            receiver_count,
+            entry_positions,
+            entry_normals,
+            entry_clusters,
+            cluster_count,
+            cluster_centres,
+            cluster_normals,
+            cluster_reflectance_area,
+            disc_radius_squared,
+            panes,
+        })
+    }
+}
+
+fn corrupt(message: &str) -> TechniqueError {
+    TechniqueError::Other(format!("PRM bake is corrupt: {message}; bake it again"))
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    cursor: usize,
+}
+
+impl Reader<'_> {
+    fn take(&mut self, count: usize) -> Result<&[u8], TechniqueError> {
+        let slice = self
+            .bytes
+            .get(self.cursor..self.cursor + count)
+            .ok_or_else(|| corrupt("truncated"))?;
+        self.cursor += count;
+        Ok(slice)
+    }
+    fn u32(&mut self) -> Result<u32, TechniqueError> {
+        Ok(u32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn f32(&mut self) -> Result<f32, TechniqueError> {
+        Ok(f32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+    fn vectors(&mut self, count: usize) -> Result<Vec<Vec3>, TechniqueError> {
+        (0..count)
+            .map(|_| Ok(Vec3::new(self.f32()?, self.f32()?, self.f32()?)))
+            .collect()
+    }
+}
+
+/// Entry points in struct-of-arrays form.
+pub(crate) struct Entries {
+    pub positions: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+    pub albedos: Vec<Rgb>,
+}
+
+/// Entry points distributed by area with the Halton sequence (bases 2 for
+/// the triangle, 3 and 5 within it), so they cover surfaces evenly.
+pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, TechniqueError> {
+    let mesh = &scene.mesh;
+    let mut cumulative = Vec::with_capacity(mesh.triangles.len());
+    let mut running = 0.0f64;
+    for triangle in 0..mesh.triangles.len() {
+        running += mesh.area(triangle) as f64;
+        cumulative.push(running);
+    }
+    if running <= 0.0 {
+        return Err(TechniqueError::Other(
+            "the scene has no surface area to place PRM entry points on".into(),
+        ));
+    }
+    let mut entries = Entries {
+        positions: Vec::with_capacity(count),
+        normals: Vec::with_capacity(count),
+        albedos: Vec::with_capacity(count),
+    };
+    for index in 0..count as u64 {
+        // Index 0 of Halton is the origin; start at 1.
+        let target = radical_inverse(2, index + 1) * running;
+        let triangle = cumulative
+            .partition_point(|&c| c <= target)
+            .min(cumulative.len() - 1);
+        let sample = Vec2::new(
+            radical_inverse(3, index + 1) as f32,
+            radical_inverse(5, index + 1) as f32,
+        );
+        let barycentric = uniform_triangle(sample);
+        let [a, b, c] = mesh.vertices(triangle);
+        entries
+            .positions
+            .push(a + (b - a) * barycentric.x + (c - a) * barycentric.y);
+        entries.normals.push(mesh.geometric_normal(triangle));
+        entries.albedos.push(scene.albedo_at(triangle, barycentric));
+    }
+    Ok(entries)
+}
+
+pub(crate) struct Clustering {
+    pub assignment: Vec<u32>,
+    pub centres: Vec<Vec3>,
+    pub normals: Vec<Vec3>,
+}
+
+/// k-means over (position / diagonal, normal * weight), seeded with evenly
+/// spaced entries of the Halton order (which is already well spread), a
+/// fixed number of Lloyd iterations, ties to the lower index: deterministic.
+pub(crate) fn cluster_entries(
+    positions: &[Vec3],
+    normals: &[Vec3],
+    clusters: usize,
+    normal_weight: f32,
+    diagonal: f32,
+) -> Clustering {
+    let feature = |index: usize| (positions[index] / diagonal, normals[index] * normal_weight);
+    let count = positions.len();
+    let mut centres: Vec<(Vec3, Vec3)> = (0..clusters)
+        .map(|cluster| feature(cluster * count / clusters))
+        .collect();
+    let mut assignment = vec![0u32; count];
+    for _ in 0..16 {
+        let changed: usize = assignment
+            .par_iter_mut()
+            .enumerate()
+            .map(|(index, slot)| {
+                let (position, normal) = feature(index);
+                let mut best = (f32::INFINITY, 0u32);
+                for (cluster, (centre_position, centre_normal)) in centres.iter().enumerate() {
+                    let distance = position.distance_squared(*centre_position)
+                        + normal.distance_squared(*centre_normal);
+                    if distance < best.0 {
+                        best = (distance, cluster as u32);
+                    }
+                }
+                let changed = (*slot != best.1) as usize;
+                *slot = best.1;
+                changed
+            })
+            .sum();
+        let mut sums = vec![(Vec3::ZERO, Vec3::ZERO, 0u32); clusters];
+        for (index, &cluster) in assignment.iter().enumerate() {
+            let (position, normal) = feature(index);
+            let sum = &mut sums[cluster as usize];
+            sum.0 += position;
+            sum.1 += normal;
+            sum.2 += 1;
+        }
+        for (centre, sum) in centres.iter_mut().zip(&sums) {
+            // An emptied cluster keeps its centre; it may win entries back.
+            if sum.2 > 0 {
+                *centre = (sum.0 / sum.2 as f32, sum.1 / sum.2 as f32);
+            }
+        }
+        if changed == 0 {
+            break;
+        }
+    }
+    let mut position_sums = vec![(Vec3::ZERO, Vec3::ZERO, 0u32); clusters];
+    for (index, &cluster) in assignment.iter().enumerate() {
+        let sum = &mut position_sums[cluster as usize];
+        sum.0 += positions[index];
+        sum.1 += normals[index];
+        sum.2 += 1;
+    }
+    Clustering {
+        assignment,
+        centres: position_sums
+            .iter()
+            .map(|sum| {
+                if sum.2 > 0 {
+                    sum.0 / sum.2 as f32
+                } else {
+                    Vec3::ZERO
+                }
+            })
+            .collect(),
+        normals: position_sums
+            .iter()
+            .map(|sum| sum.1.normalize_or_zero())
+            .collect(),
+    }
+}
+
+/// Virtual lights of the light paths leaving one entry point with unit
+/// irradiance (equations 1 to 3): the entry point itself reflects
+/// albedo x area; each further vertex carries the flux on, with cosine
+/// directions and Russian roulette by albedo luminance.
+fn light_path_vertices(
+    context: &SceneContext,
+    entries: &Entries,
+    entry: usize,
+    area_per_entry: f32,
+    params: &PrmParams,
+    epsilon: f32,
+) -> Vec<VirtualLight> {
+    let scene = &context.scene;
+    let paths = params.paths_per_entry;
+    let start = VirtualLight {
+        position: entries.positions[entry],
+        normal: entries.normals[entry],
+        flux: entries.albedos[entry] * area_per_entry,
+    };
+    let mut lights = Vec::new();
+    for path in 0..paths {
+        let mut rng = SampleStream::new(params.seed, entry as u64, path as u64);
+        let mut current = VirtualLight {
+            flux: start.flux / paths as f32,
+            ..start
+        };
+        for _ in 0..64 {
+            let direction = cosine_hemisphere_around(current.normal, rng.next_vec2());
+            let ray = Ray {
+                origin: current.position + current.normal * epsilon,
+                direction,
+                t_max: f32::INFINITY,
+            };
+            let previous = std::mem::replace(
+                &mut current,
+                VirtualLight {
+                    position: Vec3::ZERO,
+                    normal: Vec3::ZERO,
+                    flux: Rgb::ZERO,
+                },
+            );
+            let Some(hit) = context.bvh.intersect(&ray) else {
+                lights.push(previous);
+                break;
+            };
+            let triangle = hit.triangle as usize;
+            let [a, b, c] = scene.mesh.vertices(triangle);
+            let front = scene.mesh.geometric_normal(triangle);
+            let albedo = scene.albedo_at(triangle, hit.barycentric);
+            let survival = luminance(albedo).clamp(0.0, 1.0);
+            let flux = previous.flux;
+            lights.push(previous);
+            if survival <= 0.0 || rng.next_f32() >= survival {
+                break;
+            }
+            current = VirtualLight {
+                position: a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y,
+                normal: if front.dot(direction) < 0.0 {
+                    front
+                } else {
+                    -front
+                },
+                // All of the flux arrives (cosine sampling of a Lambertian
+                // emitter), a fraction albedo / survival is reflected on.
+                flux: flux * albedo / survival,
+            };
+        }
+        if current.flux != Rgb::ZERO {
+            lights.push(current);
+        }
+    }
+    lights
+}
+
+/// Adds one virtual light's irradiance at every receiver (shadow rays),
+/// with the disc guard: E = flux / pi * cos_l cos_x / (d^2 + r^2).
+fn gather(
+    context: &SceneContext,
+    light: &VirtualLight,
+    disc_radius_squared: f32,
+    epsilon: f32,
+    pane: &mut [Rgb],
+) {
+    let receivers = &context.atlas.receivers;
+    let origin = light.position + light.normal * epsilon;
+    for (index, value) in pane.iter_mut().enumerate() {
+        let position = receivers.positions[index];
+        let normal = receivers.normals[index];
+        let offset = origin - position;
+        let distance_squared = offset.length_squared();
+        let cosine_receiver = normal.dot(offset);
+        let cosine_light = -light.normal.dot(offset);
+        if cosine_receiver <= 0.0 || cosine_light <= 0.0 {
+            continue;
+        }
+        let shadow = Ray {
+            origin: position + normal * epsilon,
+            direction: origin - (position + normal * epsilon),
+            t_max: 1.0 - 1e-4,
+        };
+        if context.bvh.occluded(&shadow) {
+            continue;
+        }
+        // cosines were not normalised: divide by d^2 once more.
+        let geometry = cosine_receiver * cosine_light
+            / (distance_squared * (distance_squared + disc_radius_squared));
+        *value += light.flux * (geometry * std::f32::consts::FRAC_1_PI);
+    }
+}

@@ -1,0 +1,151 @@
+//! PRM: Precomputed Radiance Maps (Szécsi and Szirmay-Kalos, "On Making
+//! Light Maps Dynamic"), a lightmap made dynamic by precomputed light paths.
+//!
+//! Data flow. Bake: entry points are sampled on all surfaces in proportion
+//! to area (Halton, low discrepancy) and clustered by position and normal
+//! (k-means); from each entry point quasi-random light paths (cosine
+//! directions, Russian roulette by albedo luminance, equations 1 to 3) leave
+//! virtual point lights, and every lightmap receiver (the paper's exit
+//! points) gathers from them by shadow rays, assuming unit irradiance at the
+//! entry point. The result, summed per cluster, is one pane per cluster,
+//! stored as f16 RGB. Every frame: the shared direct-light service gives
+//! each entry point's irradiance, a cluster's weight is the mean over its
+//! entries, and the top-K clusters by weight, each pane times its weight,
+//! sum into the indirect lightmap, which is dilated and sampled bilinearly.
+//!
+//! | parameter | default | meaning |
+//! |---|---|---|
+//! | `entries` | 4096 | entry points (the paper: 4096) |
+//! | `clusters` | 256 | panes after clustering (the paper: 256) |
+//! | `top_k` | 32 | clusters summed per frame (the paper: 32); 0 = all |
+//! | `paths_per_entry` | 4 | light paths from each entry point |
+//! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
+//! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
+//! | `seed` | 1 | |
+//!
+//! Choose PRM for small and medium static scenes with few, moving lights
+//! where a lightmap is wanted anyway: its per-frame cost is K lightmap-sized
+//! multiply-adds, independent of how many bounces the panes contain. Memory
+//! grows as clusters times texels, which rules out large lightmaps with many
+//! clusters.
+//!
+//! Known limits and choices:
+//! - The paper sums path vertices from z1 on (equation 3), which would drop
+//!   light that bounced once, at the entry point itself; relight includes
+//!   the entry point as the first virtual light, so a pane holds every bounce.
+//! - Virtual lights are singular (1/d^2). relight treats each as a disc of
+//!   the area its entry point stands for (r^2 = A / (N pi)) and uses the
+//!   on-axis disc formula, replacing d^2 by d^2 + r^2: bounded, biased only
+//!   within about r of a virtual light, and never a "spike".
+//! - Entry points face their triangle's front side; light reaching only the
+//!   back of thin two-sided geometry does not enter the panes.
+//! - Points in space (dynamic objects) get an approximation: one bounce from
+//!   the cluster centres as disc lights, without visibility.
+
+mod bake;
+mod runtime;
+
+pub use bake::{estimate_pane_bytes, PrmBake};
+pub use runtime::Prm;
+
+use relight_technique::{
+    parse_params, Progress, SceneContext, Technique, TechniqueError, TechniqueKind,
+};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// Parameters of PRM, bake and run time together.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PrmParams {
+    pub entries: u32,
+    pub clusters: u32,
+    pub top_k: u32,
+    pub paths_per_entry: u32,
+    pub normal_weight: f32,
+    pub max_memory_mib: u64,
+    pub seed: u64,
+}
+
+impl Default for PrmParams {
+    fn default() -> Self {
+        Self {
+            entries: 4096,
+            clusters: 256,
+            top_k: 32,
+            paths_per_entry: 4,
+            normal_weight: 0.5,
+            max_memory_mib: 2048,
+            seed: 1,
+        }
+    }
+}
+
+impl PrmParams {
+    fn validate(&self) -> Result<(), TechniqueError> {
+        let problem = if self.entries == 0 {
+            Some("entries must be at least 1")
+        } else if self.clusters == 0 || self.clusters > self.entries {
+            Some("clusters must be between 1 and entries")
+        } else if self.paths_per_entry == 0 {
+            Some("paths_per_entry must be at least 1")
+        } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
+            Some("normal_weight must be a finite number >= 0")
+        } else {
+            None
+        };
+        match problem {
+            Some(message) => Err(relight_technique::ParamError {
+                technique: "prm",
+                message: message.to_string(),
+            }
+            .into()),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The PRM technique kind for the CLI's table.
+pub struct PrmKind;
+
+impl TechniqueKind for PrmKind {
+    fn name(&self) -> &'static str {
+        "prm"
+    }
+    fn summary(&self) -> &'static str {
+        "Precomputed Radiance Maps: light paths from clustered entry points, top-K panes per frame"
+    }
+    fn needs_bake(&self) -> bool {
+        true
+    }
+    fn bake(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let params = parse_params("prm", &PrmParams::default(), params)?;
+        params.validate()?;
+        Ok(PrmBake::build(context, &params, progress)?.encode())
+    }
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        bake: Option<&[u8]>,
+        params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError> {
+        let params = parse_params("prm", &PrmParams::default(), params)?;
+        params.validate()?;
+        let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "prm" })?;
+        let bake = PrmBake::decode(bake)?;
+        if bake.receiver_count != context.atlas.receivers.len() {
+            return Err(TechniqueError::Other(format!(
+                "this PRM bake has {} receivers but the scene's lightmap has {}: bake again with the same lightmap resolution",
+                bake.receiver_count,
+                context.atlas.receivers.len()
+            )));
+        }
+        Ok(Box::new(Prm::new(context, bake, params.top_k)))
+    }
+}
