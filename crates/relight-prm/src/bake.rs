@@ -140,6 +140,54 @@ impl PrmBake {
         })
     }
 
+    /// The pane of one entry point at `position` with `normal`, `albedo`
+    /// and represented `area`, with unit irradiance, from `paths` light
+    /// paths: the indirect irradiance it causes at every receiver. The bake
+    /// sums exactly these per cluster; exposed to test it against the path
+    /// tracer.
+    pub fn single_entry_pane(
+        context: &SceneContext,
+        position: Vec3,
+        normal: Vec3,
+        albedo: Rgb,
+        area: f32,
+        paths: u32,
+        seed: u64,
+    ) -> Vec<Rgb> {
+        let entries = Entries {
+            positions: vec![position],
+            normals: vec![normal],
+            albedos: vec![albedo],
+        };
+        let params = PrmParams {
+            entries: 1,
+            clusters: 1,
+            paths_per_entry: paths,
+            seed,
+            ..PrmParams::default()
+        };
+        let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+        let lights = light_path_vertices(context, &entries, 0, area, &params, epsilon);
+        let disc_radius_squared = area / std::f32::consts::PI;
+        let receivers = context.atlas.receivers.len();
+        // Gather per virtual light in parallel, then add in light order.
+        let partial: Vec<Vec<Rgb>> = lights
+            .par_iter()
+            .map(|light| {
+                let mut pane = vec![Rgb::ZERO; receivers];
+                gather(context, light, disc_radius_squared, epsilon, &mut pane);
+                pane
+            })
+            .collect();
+        let mut pane = vec![Rgb::ZERO; receivers];
+        for contribution in partial {
+            for (total, value) in pane.iter_mut().zip(contribution) {
+                *total += value;
+            }
+        }
+        pane
+    }
+
     /// Little-endian payload for the bake file.
     pub fn encode(&self) -> Vec<u8> {
         let mut bytes =

@@ -144,3 +144,152 @@ fn oversized_bakes_are_refused_with_advice() {
         "{error}"
     );
 }
+
+#[test]
+fn one_entry_pane_matches_path_traced_unit_irradiance() {
+    // A unit-irradiance patch of area A and albedo a reflects like an
+    // emitter of radiance a / pi over A. Path trace that emitter in the box
+    // (direct light from it plus all indirect light) at every receiver and
+    // compare with the entry point's pane.
+    use glam::Vec3;
+    use relight_core::Rgb;
+    use relight_scene::Material;
+    use relight_trace::path::PathTracer;
+
+    let context = context("cornell-box-point", 48);
+    let entry = Vec3::new(0.278, 0.0, 0.28);
+    let side = 0.02f32;
+    let area = side * side;
+    let floor_triangle = (0..context.scene.mesh.triangles.len())
+        .find(|&t| {
+            let [a, b, c] = context.scene.mesh.vertices(t);
+            a.y.abs() < 1e-4 && b.y.abs() < 1e-4 && c.y.abs() < 1e-4
+        })
+        .expect("the box has a floor");
+    let floor_albedo = context.scene.material_of(floor_triangle).albedo;
+    let pane = PrmBake::single_entry_pane(&context, entry, Vec3::Y, floor_albedo, area, 4096, 5);
+    // A second, independent pane measures the light paths' own noise.
+    let pane_again =
+        PrmBake::single_entry_pane(&context, entry, Vec3::Y, floor_albedo, area, 4096, 6);
+
+    // The same box with a small emitter just above the entry point, facing up.
+    let mut scene = context.scene.clone();
+    let base = scene.mesh.positions.len() as u32;
+    let lift = 1e-4;
+    let half = side / 2.0;
+    scene.mesh.positions.extend([
+        entry + Vec3::new(-half, lift, -half),
+        entry + Vec3::new(half, lift, -half),
+        entry + Vec3::new(half, lift, half),
+        entry + Vec3::new(-half, lift, half),
+    ]);
+    // Counter-clockwise seen from above: normal +Y.
+    scene
+        .mesh
+        .triangles
+        .extend([[base, base + 2, base + 1], [base, base + 3, base + 2]]);
+    let material = scene.materials.len() as u32;
+    scene.mesh.material_ids.extend([material, material]);
+    scene.materials.push(Material {
+        name: "unit patch".into(),
+        albedo: Rgb::ZERO,
+        emission: floor_albedo / std::f32::consts::PI,
+        ..Material::default()
+    });
+    let lit = SceneContext::new(
+        scene,
+        ContextSettings {
+            lightmap: TexelDensity::TargetResolution(48),
+            ..ContextSettings::default()
+        },
+    )
+    .unwrap();
+    let direct = lit.direct();
+    let receivers = &context.atlas.receivers;
+    // Two independent path-traced halves: their mean is the answer, their
+    // difference measures its noise (stratification defeats the iid formula).
+    let samples = 4096u32;
+    let halves: Vec<Vec<[f64; 3]>> = [11u64, 12]
+        .iter()
+        .map(|&seed| {
+            let tracer = PathTracer::new(
+                &direct,
+                PathSettings {
+                    seed,
+                    ..PathSettings::default()
+                },
+            );
+            let mut sums = vec![[0.0f64; 3]; receivers.len()];
+            tracer.indirect_irradiance_sums(
+                &[],
+                &receivers.positions,
+                &receivers.normals,
+                0,
+                samples,
+                samples,
+                &mut sums,
+            );
+            sums
+        })
+        .collect();
+    let far: Vec<usize> = (0..receivers.len())
+        .filter(|&r| receivers.positions[r].distance(entry) > 0.1)
+        .collect();
+    let mut expected = Vec::with_capacity(far.len());
+    let mut got = Vec::with_capacity(far.len());
+    let mut got_again = Vec::with_capacity(far.len());
+    let mut traced_difference = Vec::with_capacity(far.len());
+    for &receiver in &far {
+        let mut direct_sum = Rgb::ZERO;
+        for key in 0..64u64 {
+            direct_sum += direct.irradiance(
+                &[],
+                receivers.positions[receiver],
+                receivers.normals[receiver],
+                (receiver as u64) << 8 | key,
+            );
+        }
+        let half = |index: usize| {
+            Rgb::from_array(halves[index][receiver].map(|value| (value / samples as f64) as f32))
+        };
+        expected.push(direct_sum / 64.0 + (half(0) + half(1)) * 0.5);
+        traced_difference.push((half(0) - half(1)) * 0.5);
+        got.push(pane[receiver]);
+        got_again.push(pane_again[receiver]);
+    }
+    let error = error_norms(&got, &expected).relative_rmse;
+    // Two independent panes differ by sqrt(2) times one pane's noise.
+    let pane_noise = error_norms(&got, &got_again).relative_rmse / 2f64.sqrt();
+    let traced_noise = relative_noise(
+        &expected,
+        &traced_difference
+            .iter()
+            .map(|d| d.abs())
+            .collect::<Vec<_>>(),
+    );
+    let total = |values: &[Rgb]| {
+        values
+            .iter()
+            .map(|v| v.x as f64 + v.y as f64 + v.z as f64)
+            .sum::<f64>()
+    };
+    let ratio = total(&got) / total(&expected);
+    eprintln!(
+        "single entry pane vs path tracing over {} receivers: relRMSE {error:.4}, pane noise {pane_noise:.4}, path-traced noise {traced_noise:.4}, sum ratio {ratio:.4}",
+        far.len()
+    );
+    // Totals average out the virtual lights' noise: they must agree within
+    // 3 %, which catches a missed bounce (the first bounce alone is about 70 %
+    // of the total), a wrong factor of pi or a wrong albedo.
+    assert!((ratio - 1.0).abs() < 0.03, "sum ratio {ratio}");
+    // Per receiver: both sides' measured noise (independent, so in
+    // quadrature) plus a systematic part. Measured here: relRMSE 11.5 %
+    // against 5.9 % of noise, and still 10.4 % with four times the samples
+    // on both sides, so about 10 % is a real redistribution while totals
+    // agree to 1 %. The largest differences sit at receivers near edges
+    // and corners, where the virtual lights' disc guard (r = 1.1 cm here)
+    // cuts near-field light that the path tracer keeps: open work for PRM.
+    // The bound holds that systematic part at 10 % so any growth fails.
+    let bound = (pane_noise.powi(2) + traced_noise.powi(2)).sqrt() + 0.10;
+    assert!(error < bound, "relRMSE {error} above {bound}");
+}
