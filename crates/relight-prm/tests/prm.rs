@@ -156,26 +156,32 @@ fn one_entry_pane_matches_path_traced_unit_irradiance() {
     use relight_scene::Material;
     use relight_trace::path::PathTracer;
 
+    // The entry point is on the ceiling's centre, facing down: far from the
+    // blocks, so the patch's own penumbra (a point entry has none) does not
+    // enter the comparison. (On the floor beside the short block, 2 cm of
+    // patch is half hidden from parts of the walls.)
     let context = context("cornell-box-point", 48);
-    let entry = Vec3::new(0.278, 0.0, 0.28);
-    let side = 0.02f32;
+    let (_, high) = context.scene.mesh.bounds();
+    let entry = Vec3::new(0.278, high.y, 0.28);
+    let side = 0.01f32;
     let area = side * side;
-    let floor_triangle = (0..context.scene.mesh.triangles.len())
+    let ceiling_triangle = (0..context.scene.mesh.triangles.len())
         .find(|&t| {
             let [a, b, c] = context.scene.mesh.vertices(t);
-            a.y.abs() < 1e-4 && b.y.abs() < 1e-4 && c.y.abs() < 1e-4
+            [a, b, c].iter().all(|v| (v.y - high.y).abs() < 1e-4)
         })
-        .expect("the box has a floor");
-    let floor_albedo = context.scene.material_of(floor_triangle).albedo;
-    let pane = PrmBake::single_entry_pane(&context, entry, Vec3::Y, floor_albedo, area, 4096, 5);
+        .expect("the box has a ceiling");
+    let ceiling_albedo = context.scene.material_of(ceiling_triangle).albedo;
+    let down = -Vec3::Y;
+    let pane = PrmBake::single_entry_pane(&context, entry, down, ceiling_albedo, area, 4096, 5);
     // A second, independent pane measures the light paths' own noise.
     let pane_again =
-        PrmBake::single_entry_pane(&context, entry, Vec3::Y, floor_albedo, area, 4096, 6);
+        PrmBake::single_entry_pane(&context, entry, down, ceiling_albedo, area, 4096, 6);
 
-    // The same box with a small emitter just above the entry point, facing up.
+    // The same box with a small emitter just below the entry point, facing down.
     let mut scene = context.scene.clone();
     let base = scene.mesh.positions.len() as u32;
-    let lift = 1e-4;
+    let lift = -1e-4;
     let half = side / 2.0;
     scene.mesh.positions.extend([
         entry + Vec3::new(-half, lift, -half),
@@ -183,17 +189,17 @@ fn one_entry_pane_matches_path_traced_unit_irradiance() {
         entry + Vec3::new(half, lift, half),
         entry + Vec3::new(-half, lift, half),
     ]);
-    // Counter-clockwise seen from above: normal +Y.
+    // Counter-clockwise seen from below: normal -Y.
     scene
         .mesh
         .triangles
-        .extend([[base, base + 2, base + 1], [base, base + 3, base + 2]]);
+        .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
     let material = scene.materials.len() as u32;
     scene.mesh.material_ids.extend([material, material]);
     scene.materials.push(Material {
         name: "unit patch".into(),
         albedo: Rgb::ZERO,
-        emission: floor_albedo / std::f32::consts::PI,
+        emission: ceiling_albedo / std::f32::consts::PI,
         ..Material::default()
     });
     let lit = SceneContext::new(
@@ -208,7 +214,7 @@ fn one_entry_pane_matches_path_traced_unit_irradiance() {
     let receivers = &context.atlas.receivers;
     // Two independent path-traced halves: their mean is the answer, their
     // difference measures its noise (stratification defeats the iid formula).
-    let samples = 4096u32;
+    let samples = 1024u32;
     let halves: Vec<Vec<[f64; 3]>> = [11u64, 12]
         .iter()
         .map(|&seed| {
@@ -283,13 +289,10 @@ fn one_entry_pane_matches_path_traced_unit_irradiance() {
     // of the total), a wrong factor of pi or a wrong albedo.
     assert!((ratio - 1.0).abs() < 0.03, "sum ratio {ratio}");
     // Per receiver: both sides' measured noise (independent, so in
-    // quadrature) plus a systematic part. Measured here: relRMSE 11.5 %
-    // against 5.9 % of noise, and still 10.4 % with four times the samples
-    // on both sides, so about 10 % is a real redistribution while totals
-    // agree to 1 %. The largest differences sit at receivers near edges
-    // and corners, where the virtual lights' disc guard (r = 1.1 cm here)
-    // cuts near-field light that the path tracer keeps: open work for PRM.
-    // The bound holds that systematic part at 10 % so any growth fails.
-    let bound = (pane_noise.powi(2) + traced_noise.powi(2)).sqrt() + 0.10;
+    // quadrature, with 25 % slack for the noise estimates' own spread) plus
+    // 3 % systematic: the disc guard changes 1/d^2 by r^2/d^2 <= 0.3 % beyond
+    // 0.1 m for the entry itself, and trims the near field of the later
+    // virtual lights (the totals come out about 2 % low).
+    let bound = (pane_noise.powi(2) + traced_noise.powi(2)).sqrt() * 1.25 + 0.03;
     assert!(error < bound, "relRMSE {error} above {bound}");
 }
