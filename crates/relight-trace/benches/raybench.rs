@@ -4,7 +4,8 @@
 //! override the sizes; scenes that are missing are skipped.
 //! `RAYBENCH_CPU_TIME=1` instead traces single-threaded and reports thread
 //! CPU time per ray, which stays comparable while other processes load the
-//! machine (used for A/B tuning of the traversal).
+//! machine (used for A/B tuning of the traversal), and the process CPU time
+//! of a build (all threads together).
 
 use glam::Vec3;
 use relight_trace::bvh::{Bvh, Ray};
@@ -33,6 +34,25 @@ fn thread_cpu_seconds() -> f64 {
     // SAFETY: clock_gettime only writes the struct it is given.
     unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut time) };
     time.seconds as f64 + time.nanoseconds as f64 * 1e-9
+}
+
+/// CPU time of the whole process (all threads) in seconds: the work a
+/// parallel build does, comparable under load.
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
+fn process_cpu_seconds() -> f64 {
+    const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
+    let mut time = Timespec {
+        seconds: 0,
+        nanoseconds: 0,
+    };
+    // SAFETY: clock_gettime only writes the struct it is given.
+    unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut time) };
+    time.seconds as f64 + time.nanoseconds as f64 * 1e-9
+}
+
+#[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]
+fn process_cpu_seconds() -> f64 {
+    thread_cpu_seconds()
 }
 
 /// Elsewhere wall time stands in for CPU time.
@@ -69,6 +89,14 @@ fn cpu_time_report(
     ray_count: usize,
     repeats: usize,
 ) {
+    let build_cpu_ms = (0..repeats.max(1))
+        .map(|_| {
+            let start = process_cpu_seconds();
+            std::hint::black_box(Bvh::build(positions, triangles));
+            (process_cpu_seconds() - start) * 1e3
+        })
+        .fold(f64::INFINITY, f64::min);
+    println!("build CPU ms (all threads): {build_cpu_ms:.1}");
     let bvh = Bvh::build(positions, triangles);
     let rays = RaySets::generate(positions, triangles, light, ray_count, 1);
     let occlusion: Vec<Ray> = rays
