@@ -72,15 +72,22 @@ fn sum_panes(
             let length = values.len() * 3;
             for &cluster in selected {
                 let weight = weights[cluster as usize];
+                // Four RGB triples per 12 floats: a fixed weight pattern lets
+                // the multiply-add run as plain SIMD lanes, not strided RGB.
+                let pattern: [f32; 12] = std::array::from_fn(|lane| weight[lane % 3]);
                 let offset = (cluster as usize * receivers + start) * 3;
                 panes[offset..offset + length].convert_to_f32_slice(&mut converted[..length]);
-                for (triple, source) in accumulator[..length]
-                    .chunks_exact_mut(3)
-                    .zip(converted[..length].chunks_exact(3))
+                let whole = length / 12 * 12;
+                for (lanes, source) in accumulator[..whole]
+                    .chunks_exact_mut(12)
+                    .zip(converted[..whole].chunks_exact(12))
                 {
-                    triple[0] += weight.x * source[0];
-                    triple[1] += weight.y * source[1];
-                    triple[2] += weight.z * source[2];
+                    for lane in 0..12 {
+                        lanes[lane] += pattern[lane] * source[lane];
+                    }
+                }
+                for index in whole..length {
+                    accumulator[index] += pattern[index % 3] * converted[index];
                 }
             }
             for (value, triple) in values.iter_mut().zip(accumulator.chunks_exact(3)) {
