@@ -152,11 +152,7 @@ impl Technique for Prm {
         });
         let lightmap = &mut self.lightmap;
         self.timings.time("dilation", || {
-            for (receiver, texel) in context.atlas.receivers.texels.iter().enumerate() {
-                lightmap[(texel[1] * context.atlas.width + texel[0]) as usize] =
-                    receiver_values[receiver];
-            }
-            context.atlas.dilate(lightmap);
+            context.atlas.scatter_into(receiver_values, lightmap);
         });
         Ok(())
     }

@@ -292,11 +292,19 @@ impl Atlas {
     /// Scatters per-receiver values into a full lightmap and dilates it.
     pub fn to_lightmap(&self, per_receiver: &[Rgb]) -> Vec<Rgb> {
         let mut lightmap = vec![Rgb::ZERO; self.width as usize * self.height as usize];
-        for (receiver, texel) in self.receivers.texels.iter().enumerate() {
-            lightmap[(texel[1] * self.width + texel[0]) as usize] = per_receiver[receiver];
-        }
-        self.dilate(&mut lightmap);
+        self.scatter_into(per_receiver, &mut lightmap);
         lightmap
+    }
+
+    /// Writes per-receiver values into an existing `width * height`
+    /// lightmap and dilates it: the allocation-free form for every frame.
+    /// Texels that cover no geometry and lie outside every gutter keep
+    /// whatever they held.
+    pub fn scatter_into(&self, per_receiver: &[Rgb], lightmap: &mut [Rgb]) {
+        for (value, texel) in per_receiver.iter().zip(&self.receivers.texels) {
+            lightmap[(texel[1] * self.width + texel[0]) as usize] = *value;
+        }
+        self.dilate(lightmap);
     }
 
     /// Copies covered texels into the gutter texels around them.
