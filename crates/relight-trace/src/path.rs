@@ -335,6 +335,30 @@ mod tests {
     use crate::direct::DirectSettings;
     use relight_scene::{Material, Mesh};
 
+    /// A scene of one material with uniform grey albedo and emission.
+    fn uniform_scene(
+        positions: Vec<Vec3>,
+        triangles: Vec<[u32; 3]>,
+        albedo: f32,
+        emission: f32,
+    ) -> Scene {
+        let mesh = Mesh {
+            positions,
+            material_ids: vec![0; triangles.len()],
+            triangles,
+            ..Default::default()
+        };
+        Scene {
+            mesh,
+            materials: vec![Material {
+                albedo: Rgb::splat(albedo),
+                emission: Rgb::splat(emission),
+                ..Material::default()
+            }],
+            ..Default::default()
+        }
+    }
+
     /// Closed axis-aligned box of half-size 1, walls facing inward, uniform
     /// albedo and emission.
     fn closed_box(albedo: f32, emission: f32) -> Scene {
@@ -361,21 +385,7 @@ mod tests {
             triangles.push([quad[0], quad[1], quad[2]]);
             triangles.push([quad[0], quad[2], quad[3]]);
         }
-        let mesh = Mesh {
-            positions: corners,
-            material_ids: vec![0; triangles.len()],
-            triangles,
-            ..Default::default()
-        };
-        Scene {
-            mesh,
-            materials: vec![Material {
-                albedo: Rgb::splat(albedo),
-                emission: Rgb::splat(emission),
-                ..Material::default()
-            }],
-            ..Default::default()
-        }
+        uniform_scene(corners, triangles, albedo, emission)
     }
 
     /// Closed tessellated unit sphere, faces inward, uniform albedo and
@@ -408,21 +418,7 @@ mod tests {
                 triangles.push([a, c, d]);
             }
         }
-        let mesh = Mesh {
-            positions,
-            material_ids: vec![0; triangles.len()],
-            triangles,
-            ..Default::default()
-        };
-        Scene {
-            mesh,
-            materials: vec![Material {
-                albedo: Rgb::splat(albedo),
-                emission: Rgb::splat(emission),
-                ..Material::default()
-            }],
-            ..Default::default()
-        }
+        uniform_scene(positions, triangles, albedo, emission)
     }
 
     #[test]
