@@ -18,6 +18,7 @@
 //! | `entries` | 4096 | entry points (the paper: 4096) |
 //! | `clusters` | 256 | panes after clustering (the paper: 256) |
 //! | `top_k` | 32 | clusters summed per frame (the paper: 32); 0 = all |
+//! | `selection` | `"contribution"` | how the top K are ranked: `"contribution"` (weight times the pane's total luminance) or `"weight"` (mean entry irradiance alone, as the paper does) |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
 //! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
@@ -37,6 +38,12 @@
 //!   the area its entry point stands for (r^2 = A / (N pi)) and uses the
 //!   on-axis disc formula, replacing d^2 by d^2 + r^2: bounded, biased only
 //!   within about r of a virtual light, and never a "spike".
+//! - The paper ranks clusters by weight alone, so a brightly lit cluster
+//!   whose light goes nowhere can displace a dimmer one that lights half the
+//!   room. relight ranks by weight times the pane's total luminance, the
+//!   light a cluster adds (`selection = "weight"` restores the paper's
+//!   ranking). At K = 32 this lowers the Cornell box's lightmap error from
+//!   21.7 % to 16.3 % and the two rooms' from 42.3 % to 27.7 %.
 //! - Entry points face their triangle's front side; light reaching only the
 //!   back of thin two-sided geometry does not enter the panes.
 //! - Points in space (dynamic objects) get an approximation: one bounce from
@@ -46,7 +53,7 @@ mod bake;
 mod runtime;
 
 pub use bake::{estimate_pane_bytes, PrmBake};
-pub use runtime::Prm;
+pub use runtime::{Prm, Selection};
 
 use relight_technique::{
     parse_params, Progress, SceneContext, Technique, TechniqueError, TechniqueKind,
@@ -61,6 +68,7 @@ pub struct PrmParams {
     pub entries: u32,
     pub clusters: u32,
     pub top_k: u32,
+    pub selection: String,
     pub paths_per_entry: u32,
     pub normal_weight: f32,
     pub max_memory_mib: u64,
@@ -73,6 +81,7 @@ impl Default for PrmParams {
             entries: 4096,
             clusters: 256,
             top_k: 32,
+            selection: "contribution".into(),
             paths_per_entry: 4,
             normal_weight: 0.5,
             max_memory_mib: 2048,
@@ -87,6 +96,8 @@ impl PrmParams {
             Some("entries must be at least 1")
         } else if self.clusters == 0 || self.clusters > self.entries {
             Some("clusters must be between 1 and entries")
+        } else if self.selection != "weight" && self.selection != "contribution" {
+            Some("selection must be \"weight\" or \"contribution\"")
         } else if self.paths_per_entry == 0 {
             Some("paths_per_entry must be at least 1")
         } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
@@ -146,6 +157,11 @@ impl TechniqueKind for PrmKind {
                 context.atlas.receivers.len()
             )));
         }
-        Ok(Box::new(Prm::new(context, bake, params.top_k)))
+        let selection = if params.selection == "contribution" {
+            Selection::Contribution
+        } else {
+            Selection::Weight
+        };
+        Ok(Box::new(Prm::new(context, bake, params.top_k, selection)))
     }
 }

@@ -25,10 +25,49 @@ pub struct Prm {
     receiver_values: Vec<Rgb>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
+    /// Entry points per cluster (fixed by the bake).
+    cluster_sizes: Vec<u32>,
+    /// Per cluster, the factor its weight's luminance is ranked by: 1 for
+    /// the paper's ranking by weight, the pane's total luminance for ranking
+    /// by contribution.
+    ranking_scale: Vec<f32>,
+}
+
+/// How the top-K clusters are chosen each frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Selection {
+    /// By weight (mean entry irradiance), as the paper does.
+    Weight,
+    /// By weight times the pane's total luminance: the light the cluster
+    /// would add to the lightmap.
+    Contribution,
 }
 
 impl Prm {
-    pub fn new(context: Arc<SceneContext>, bake: PrmBake, top_k: u32) -> Self {
+    pub fn new(
+        context: Arc<SceneContext>,
+        bake: PrmBake,
+        top_k: u32,
+        selection: Selection,
+    ) -> Self {
+        let mut cluster_sizes = vec![0u32; bake.cluster_count];
+        for &cluster in &bake.entry_clusters {
+            cluster_sizes[cluster as usize] += 1;
+        }
+        let ranking_scale = match selection {
+            Selection::Weight => vec![1.0; bake.cluster_count],
+            Selection::Contribution => bake
+                .panes
+                .chunks_exact(bake.receiver_count * 3)
+                .map(|pane| {
+                    pane.chunks_exact(3)
+                        .map(|rgb| {
+                            luminance(Rgb::new(rgb[0].to_f32(), rgb[1].to_f32(), rgb[2].to_f32()))
+                        })
+                        .sum()
+                })
+                .collect(),
+        };
         let top_k = if top_k == 0 {
             bake.cluster_count
         } else {
@@ -45,6 +84,8 @@ impl Prm {
             bake,
             top_k,
             timings: StageTimings::default(),
+            cluster_sizes,
+            ranking_scale,
         }
     }
 
@@ -117,26 +158,23 @@ impl Technique for Prm {
         let weights = &mut self.cluster_weights;
         let selected = &mut self.selected;
         let top_k = self.top_k;
+        let (sizes, scale) = (&self.cluster_sizes, &self.ranking_scale);
         self.timings.time("weights and top-K", || {
-            let mut counts = vec![0u32; bake.cluster_count];
             weights.fill(Rgb::ZERO);
             for (entry, &cluster) in bake.entry_clusters.iter().enumerate() {
                 weights[cluster as usize] += entry_irradiance[entry];
-                counts[cluster as usize] += 1;
             }
             // The pane holds the sum over its entries, so the common weight
             // is their mean irradiance.
-            for (weight, &count) in weights.iter_mut().zip(&counts) {
-                *weight /= count.max(1) as f32;
+            for (weight, &size) in weights.iter_mut().zip(sizes) {
+                *weight /= size.max(1) as f32;
             }
             selected.clear();
             selected.extend(0..bake.cluster_count as u32);
-            // Strongest first; equal weights keep index order (deterministic).
-            selected.sort_by(|&a, &b| {
-                luminance(weights[b as usize])
-                    .total_cmp(&luminance(weights[a as usize]))
-                    .then(a.cmp(&b))
-            });
+            let rank =
+                |cluster: u32| luminance(weights[cluster as usize]) * scale[cluster as usize];
+            // Strongest first; equal ranks keep index order (deterministic).
+            selected.sort_by(|&a, &b| rank(b).total_cmp(&rank(a)).then(a.cmp(&b)));
             selected.truncate(top_k);
             selected.retain(|&cluster| weights[cluster as usize] != Rgb::ZERO);
         });
