@@ -1,0 +1,154 @@
+//! Clustering against flicker: moves the corridor's lights along a slow
+//! orbit and reports, per cluster count, the lightmap error against the
+//! path tracer and the frame-to-frame change of the indirect lightmap next
+//! to the reference's own frame-to-frame change.
+//!
+//! Run: `cargo run --release -p relight-prm --example flicker [SCENE.toml]`
+
+use glam::{Quat, Vec3};
+use relight_prm::PrmKind;
+use relight_render::metrics::error_norms;
+use relight_scene::atlas::TexelDensity;
+use relight_scene::Light;
+use relight_technique::{
+    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, TechniqueKind,
+};
+use relight_trace::path::PathSettings;
+use std::sync::Arc;
+
+const FRAMES: u32 = 12;
+/// One degree per frame: the light moves a few centimetres each frame.
+const DEGREES_PER_FRAME: f32 = 1.0;
+
+fn orbit(lights: &[Light], centre: Vec3, frame: u32) -> Vec<Light> {
+    let rotation = Quat::from_rotation_y((frame as f32 * DEGREES_PER_FRAME).to_radians());
+    lights
+        .iter()
+        .map(|light| match light.clone() {
+            Light::Point {
+                position,
+                intensity,
+            } => Light::Point {
+                position: centre + rotation * (position - centre),
+                intensity,
+            },
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            } => Light::Spot {
+                position: centre + rotation * (position - centre),
+                direction: rotation * direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            },
+            Light::Directional {
+                direction,
+                irradiance,
+            } => Light::Directional {
+                direction: rotation * direction,
+                irradiance,
+            },
+        })
+        .collect()
+}
+
+/// Mean over consecutive frames of ||L_t - L_(t-1)|| / ||L_t||.
+fn mean_change(frames: &[Vec<relight_core::Rgb>]) -> f64 {
+    let changes: Vec<f64> = frames
+        .windows(2)
+        .map(|pair| error_norms(&pair[0], &pair[1]).relative_rmse)
+        .collect();
+    changes.iter().sum::<f64>() / changes.len().max(1) as f64
+}
+
+fn main() {
+    let path = std::env::args().nth(1).unwrap_or_else(|| {
+        concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../scenes/corridor/scene.toml"
+        )
+        .to_string()
+    });
+    let scene = relight_scene::load_scene(std::path::Path::new(&path)).expect("scene loads");
+    let settings = ContextSettings {
+        lightmap: TexelDensity::TargetResolution(64),
+        ..ContextSettings::default()
+    };
+    let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
+    let (lo, hi) = context.scene.mesh.bounds();
+    let centre = (lo + hi) * 0.5;
+    let lights: Vec<Vec<Light>> = (0..FRAMES)
+        .map(|frame| orbit(&context.scene.lights, centre, frame))
+        .collect();
+
+    // Same seed every frame: the reference's frame-to-frame change is then
+    // mostly the real change of the light, not independent noise.
+    let reference: Vec<Vec<relight_core::Rgb>> = lights
+        .iter()
+        .map(|frame_lights| {
+            reference_receiver_irradiance(
+                &context,
+                frame_lights,
+                PathSettings::default(),
+                1024,
+                &NoProgress,
+            )
+            .mean
+        })
+        .collect();
+    println!(
+        "{path}: {} receivers, {FRAMES} frames, light orbit {DEGREES_PER_FRAME} degree per frame",
+        context.atlas.receivers.len()
+    );
+    println!(
+        "reference frame-to-frame change: {:.2} %",
+        mean_change(&reference) * 100.0
+    );
+    println!("| clusters | top_k | mean lightmap relRMSE | frame-to-frame change |");
+    println!("|---:|---:|---:|---:|");
+    for clusters in [64u32, 256, 1024, 4096] {
+        let bake = PrmKind
+            .bake(
+                &context,
+                &[("clusters".into(), clusters.to_string())],
+                &NoProgress,
+            )
+            .expect("bake");
+        for top_k in [0u32, 32] {
+            let mut prm = PrmKind
+                .create(
+                    context.clone(),
+                    Some(&bake),
+                    &[("top_k".into(), top_k.to_string())],
+                    &NoProgress,
+                )
+                .expect("create");
+            let mut frames = Vec::new();
+            let mut error = 0.0;
+            for (index, frame_lights) in lights.iter().enumerate() {
+                prm.update(&Frame {
+                    lights: frame_lights,
+                    index: index as u64,
+                })
+                .expect("update");
+                let values = prm.receiver_irradiance().expect("lightmap").to_vec();
+                error += error_norms(&values, &reference[index]).relative_rmse;
+                frames.push(values);
+            }
+            println!(
+                "| {clusters} | {} | {:.1} % | {:.2} % |",
+                if top_k == 0 {
+                    "all".to_string()
+                } else {
+                    top_k.to_string()
+                },
+                error / FRAMES as f64 * 100.0,
+                mean_change(&frames) * 100.0
+            );
+        }
+    }
+}
