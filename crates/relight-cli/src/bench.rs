@@ -38,38 +38,9 @@ pub struct BenchReport {
 pub fn orbit(lights: &[Light], centre: Vec3, index: u32, frames: u32) -> Vec<Light> {
     let angle = std::f32::consts::TAU * index as f32 / frames.max(1) as f32;
     let rotation = Quat::from_rotation_y(angle);
-    let around = |position: Vec3| centre + rotation * (position - centre);
     lights
         .iter()
-        .map(|light| match light.clone() {
-            Light::Point {
-                position,
-                intensity,
-            } => Light::Point {
-                position: around(position),
-                intensity,
-            },
-            Light::Spot {
-                position,
-                direction,
-                intensity,
-                inner_angle,
-                outer_angle,
-            } => Light::Spot {
-                position: around(position),
-                direction: rotation * direction,
-                intensity,
-                inner_angle,
-                outer_angle,
-            },
-            Light::Directional {
-                direction,
-                irradiance,
-            } => Light::Directional {
-                direction: rotation * direction,
-                irradiance,
-            },
-        })
+        .map(|light| light.rotated_about(centre, rotation))
         .collect()
 }
 

@@ -24,35 +24,7 @@ fn orbit(lights: &[Light], centre: Vec3, frame: u32) -> Vec<Light> {
     let rotation = Quat::from_rotation_y((frame as f32 * DEGREES_PER_FRAME).to_radians());
     lights
         .iter()
-        .map(|light| match light.clone() {
-            Light::Point {
-                position,
-                intensity,
-            } => Light::Point {
-                position: centre + rotation * (position - centre),
-                intensity,
-            },
-            Light::Spot {
-                position,
-                direction,
-                intensity,
-                inner_angle,
-                outer_angle,
-            } => Light::Spot {
-                position: centre + rotation * (position - centre),
-                direction: rotation * direction,
-                intensity,
-                inner_angle,
-                outer_angle,
-            },
-            Light::Directional {
-                direction,
-                irradiance,
-            } => Light::Directional {
-                direction: rotation * direction,
-                irradiance,
-            },
-        })
+        .map(|light| light.rotated_about(centre, rotation))
         .collect()
 }
 

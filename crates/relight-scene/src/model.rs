@@ -1,6 +1,6 @@
 //! The in-memory scene: triangles, Lambertian materials, textures, lights.
 
-use glam::{Vec2, Vec3};
+use glam::{Quat, Vec2, Vec3};
 use relight_core::Rgb;
 use std::path::PathBuf;
 
@@ -132,6 +132,43 @@ pub enum Light {
         inner_angle: f32,
         outer_angle: f32,
     },
+}
+
+impl Light {
+    /// The light turned by `rotation` about `centre`: positions move,
+    /// directions turn, intensities stay (benchmark and study orbits).
+    pub fn rotated_about(&self, centre: Vec3, rotation: Quat) -> Light {
+        let around = |position: Vec3| centre + rotation * (position - centre);
+        match *self {
+            Light::Point {
+                position,
+                intensity,
+            } => Light::Point {
+                position: around(position),
+                intensity,
+            },
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            } => Light::Spot {
+                position: around(position),
+                direction: rotation * direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            },
+            Light::Directional {
+                direction,
+                irradiance,
+            } => Light::Directional {
+                direction: rotation * direction,
+                irradiance,
+            },
+        }
+    }
 }
 
 /// Pinhole camera, gluLookAt convention: right = normalize(forward x up).

@@ -99,14 +99,7 @@ fn cpu_time_report(
     println!("build CPU ms (all threads): {build_cpu_ms:.1}");
     let bvh = Bvh::build(positions, triangles);
     let rays = RaySets::generate(positions, triangles, light, ray_count, 1);
-    let occlusion: Vec<Ray> = rays
-        .diffuse
-        .iter()
-        .map(|ray| Ray {
-            t_max: f32::INFINITY,
-            ..*ray
-        })
-        .collect();
+    let occlusion = rays.diffuse_occlusion();
     let closest =
         cpu_nanoseconds_per_ray(&rays.diffuse, repeats, |ray| bvh.intersect(ray).is_some());
     let occluded = cpu_nanoseconds_per_ray(&occlusion, repeats, |ray| bvh.occluded(ray));

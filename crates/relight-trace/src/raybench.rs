@@ -63,6 +63,19 @@ pub struct RaySets {
     pub shadow: Vec<Ray>,
 }
 
+impl RaySets {
+    /// The diffuse rays as occlusion queries to infinity.
+    pub fn diffuse_occlusion(&self) -> Vec<Ray> {
+        self.diffuse
+            .iter()
+            .map(|ray| Ray {
+                t_max: f32::INFINITY,
+                ..*ray
+            })
+            .collect()
+    }
+}
+
 fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
     values[values.len() / 2]
@@ -228,14 +241,7 @@ fn seconds(work: impl FnOnce()) -> f64 {
 /// `repeats` passes, the tracers interleaved within each pass so that load
 /// from other processes affects them alike. Rates are medians in Mrays/s.
 fn measure(tracers: &[&dyn BatchTracer], rays: &RaySets, repeats: usize) -> Vec<Traced> {
-    let diffuse_occlusion_rays: Vec<Ray> = rays
-        .diffuse
-        .iter()
-        .map(|ray| Ray {
-            t_max: f32::INFINITY,
-            ..*ray
-        })
-        .collect();
+    let diffuse_occlusion_rays = rays.diffuse_occlusion();
     let mut traced: Vec<Traced> = tracers
         .iter()
         .map(|_| Traced {

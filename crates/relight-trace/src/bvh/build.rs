@@ -490,48 +490,31 @@ fn build_subtree(
         )
     });
     let (left_references, right_references) = references.split_at_mut(middle);
+    let mut build_left = move || {
+        build_subtree(
+            primitives,
+            areas,
+            left_references,
+            start,
+            depth + 1,
+            left_bounds,
+        )
+    };
+    let mut build_right = move || {
+        build_subtree(
+            primitives,
+            areas,
+            right_references,
+            start + middle,
+            depth + 1,
+            right_bounds,
+        )
+    };
+    // Same subtrees either way; small ones are not worth a rayon task.
     let (left, right) = if count > PARALLEL_SUBTREE_THRESHOLD {
-        rayon::join(
-            || {
-                build_subtree(
-                    primitives,
-                    areas,
-                    left_references,
-                    start,
-                    depth + 1,
-                    left_bounds,
-                )
-            },
-            || {
-                build_subtree(
-                    primitives,
-                    areas,
-                    right_references,
-                    start + middle,
-                    depth + 1,
-                    right_bounds,
-                )
-            },
-        )
+        rayon::join(build_left, build_right)
     } else {
-        (
-            build_subtree(
-                primitives,
-                areas,
-                left_references,
-                start,
-                depth + 1,
-                left_bounds,
-            ),
-            build_subtree(
-                primitives,
-                areas,
-                right_references,
-                start + middle,
-                depth + 1,
-                right_bounds,
-            ),
-        )
+        (build_left(), build_right())
     };
     BuildNode::Inner {
         bounds,
