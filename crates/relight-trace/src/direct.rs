@@ -16,6 +16,9 @@ use relight_core::sampling::{cosine_hemisphere_around, SampleStream};
 use relight_core::{luminance, Rgb};
 use relight_scene::{Light, Scene};
 
+/// Points per rayon task: enough shadow rays to amortise scheduling.
+const POINTS_PER_TASK: usize = 256;
+
 /// Settings of the direct-light service.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DirectSettings {
@@ -165,10 +168,10 @@ impl<'a> DirectLight<'a> {
         assert_eq!(points.len(), normals.len());
         assert_eq!(points.len(), irradiance.len());
         irradiance
-            .par_chunks_mut(256)
+            .par_chunks_mut(POINTS_PER_TASK)
             .enumerate()
             .for_each(|(chunk, out)| {
-                let start = chunk * 256;
+                let start = chunk * POINTS_PER_TASK;
                 for (offset, value) in out.iter_mut().enumerate() {
                     let index = start + offset;
                     *value = self.irradiance(lights, points[index], normals[index], index as u64);

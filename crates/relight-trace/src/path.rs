@@ -20,6 +20,9 @@ use relight_core::sampling::{cosine_hemisphere_around, stratified_square, Pcg32,
 use relight_core::Rgb;
 use relight_scene::{Light, Scene};
 
+/// Surface points per rayon task: enough paths to amortise scheduling.
+const POINTS_PER_TASK: usize = 64;
+
 /// Settings of the reference path tracer.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PathSettings {
@@ -254,15 +257,16 @@ impl<'a> PathTracer<'a> {
         total_samples: u32,
         sums: &mut [[f64; 3]],
     ) {
-        sums.par_chunks_mut(64)
+        sums.par_chunks_mut(POINTS_PER_TASK)
             .enumerate()
             .for_each(|(chunk, out)| {
-                for (offset, sum) in out.iter_mut().enumerate() {
-                    let index = chunk * 64 + offset;
+                for (within, sum) in out.iter_mut().enumerate() {
+                    let index = chunk * POINTS_PER_TASK + within;
+                    // One stratification shift per point, shared by its samples.
+                    let offset =
+                        SampleStream::new(self.settings.seed, index as u64, u64::MAX).next_vec2();
                     for sample in first_sample..first_sample + samples {
                         let key = ((index as u64) << 20) ^ sample as u64;
-                        let offset = SampleStream::new(self.settings.seed, index as u64, u64::MAX)
-                            .next_vec2();
                         let mut rng =
                             SampleStream::new(self.settings.seed, index as u64, sample as u64);
                         let first_bounce =
