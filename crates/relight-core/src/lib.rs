@@ -1,5 +1,6 @@
 //! Shared math for every relight crate: colour, random numbers and sampling,
-//! and real spherical harmonics.
+//! real spherical harmonics, and principal components of long f16 vectors
+//! (the techniques' transport compression).
 //!
 //! Nothing here knows about scenes or rays. Data flows one way through relight
 //! (scene, then bake, then per-frame update, then shading), and this crate sits
@@ -8,6 +9,7 @@
 //! is shared between positions and radiometric quantities.
 
 pub mod colour;
+pub mod pca;
 pub mod sampling;
 pub mod sh;
 

@@ -13,7 +13,7 @@ use relight_technique::{Progress, SceneContext, TechniqueError};
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 1;
+const PAYLOAD_VERSION: u32 = 2;
 
 /// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
 pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
@@ -37,8 +37,18 @@ pub struct PrmBake {
     pub cluster_reflectance_area: Vec<Rgb>,
     /// Disc radius squared of one entry point's area (singularity guard).
     pub disc_radius_squared: f32,
-    /// Cluster-major panes: `panes[(cluster * receivers + receiver) * 3 + channel]`,
-    /// indirect irradiance per unit irradiance at the cluster's entries.
+    /// Principal components kept (0: the panes are stored as they are).
+    pub rank: usize,
+    /// With compression, `coefficients[cluster * rank + j]`: cluster pane ~
+    /// sum_j coefficient x basis pane j.
+    pub coefficients: Vec<f32>,
+    /// Fraction of the panes' energy (squared norm) the basis keeps; 1
+    /// without compression.
+    pub captured_energy: f32,
+    /// Pane-major: `panes[(pane * receivers + receiver) * 3 + channel]`.
+    /// Without compression one pane per cluster, the indirect irradiance per
+    /// unit irradiance at its entries; with compression the `rank` basis
+    /// panes.
     pub panes: Vec<f16>,
 }
 
@@ -83,6 +93,7 @@ impl PrmBake {
             params.clusters as usize,
             params.normal_weight,
             diagonal,
+            params.seed,
         );
         let area_per_entry = total_area / params.entries as f32;
         let disc_radius_squared = area_per_entry / std::f32::consts::PI;
@@ -126,6 +137,26 @@ impl PrmBake {
         for (entry, &cluster) in clustering.assignment.iter().enumerate() {
             cluster_reflectance_area[cluster as usize] += entries.albedos[entry] * area_per_entry;
         }
+        let (rank, coefficients, captured_energy) =
+            if params.rank > 0 && (params.rank as usize) < params.clusters as usize {
+                progress.start("prm compression", 1);
+                let components = relight_core::pca::principal_components(
+                    &panes,
+                    params.clusters as usize,
+                    receiver_count * 3,
+                    params.rank as usize,
+                )
+                .map_err(|error| TechniqueError::Other(format!("PRM pane compression: {error}")))?;
+                progress.finish();
+                panes = components.basis.iter().map(|&v| f16::from_f32(v)).collect();
+                (
+                    components.rank,
+                    components.coefficients,
+                    components.captured as f32,
+                )
+            } else {
+                (0, Vec::new(), 1.0)
+            };
         Ok(Self {
             receiver_count,
             entry_positions: entries.positions,
@@ -136,8 +167,20 @@ impl PrmBake {
             cluster_normals: clustering.normals,
             cluster_reflectance_area,
             disc_radius_squared,
+            rank,
+            coefficients,
+            captured_energy,
             panes,
         })
+    }
+
+    /// Panes stored: clusters, or basis panes when compressed.
+    pub fn stored_panes(&self) -> usize {
+        if self.rank > 0 {
+            self.rank
+        } else {
+            self.cluster_count
+        }
     }
 
     /// The pane of one entry point at `position` with `normal`, `albedo`
@@ -198,7 +241,9 @@ impl PrmBake {
         put_u32(&mut bytes, self.receiver_count as u32);
         put_u32(&mut bytes, self.entry_positions.len() as u32);
         put_u32(&mut bytes, self.cluster_count as u32);
+        put_u32(&mut bytes, self.rank as u32);
         bytes.extend_from_slice(&self.disc_radius_squared.to_le_bytes());
+        bytes.extend_from_slice(&self.captured_energy.to_le_bytes());
         let put_vectors = |bytes: &mut Vec<u8>, values: &[Vec3]| {
             for value in values {
                 for component in value.to_array() {
@@ -213,6 +258,9 @@ impl PrmBake {
         put_vectors(&mut bytes, &self.cluster_reflectance_area);
         for cluster in &self.entry_clusters {
             bytes.extend_from_slice(&cluster.to_le_bytes());
+        }
+        for value in &self.coefficients {
+            bytes.extend_from_slice(&value.to_le_bytes());
         }
         for value in &self.panes {
             bytes.extend_from_slice(&value.to_bits().to_le_bytes());
@@ -231,14 +279,21 @@ impl PrmBake {
         let receiver_count = reader.u32()? as usize;
         let entry_count = reader.u32()? as usize;
         let cluster_count = reader.u32()? as usize;
+        let rank = reader.u32()? as usize;
         let disc_radius_squared = reader.f32()?;
+        let captured_energy = reader.f32()?;
+        if rank >= cluster_count && rank != 0 {
+            return Err(corrupt("more basis panes than clusters"));
+        }
+        let stored_panes = if rank > 0 { rank } else { cluster_count };
         // Every size is checked against the bytes left before allocating.
-        let pane_values = cluster_count
+        let pane_values = stored_panes
             .checked_mul(receiver_count)
             .and_then(|count| count.checked_mul(3))
             .ok_or_else(|| corrupt("pane size overflows"))?;
         let needed = entry_count as u128 * (12 * 2 + 4)
             + cluster_count as u128 * 36
+            + cluster_count as u128 * rank as u128 * 4
             + pane_values as u128 * 2;
         if needed > (bytes.len() - reader.cursor) as u128 {
             return Err(corrupt("payload shorter than its sizes say"));
@@ -258,6 +313,12 @@ impl PrmBake {
             return Err(corrupt(
                 "an entry point names a cluster that does not exist",
             ));
+        }
+        let coefficients = (0..cluster_count * rank)
+            .map(|_| reader.f32())
+            .collect::<Result<Vec<_>, _>>()?;
+        if coefficients.iter().any(|value| !value.is_finite()) {
+            return Err(corrupt("a compression coefficient is not finite"));
         }
         let panes = (0..pane_values)
             .map(|_| {
@@ -279,6 +340,9 @@ impl PrmBake {
             cluster_normals,
             cluster_reflectance_area,
             disc_radius_squared,
+            rank,
+            coefficients,
+            captured_energy,
             panes,
         })
     }
@@ -373,38 +437,80 @@ pub(crate) struct Clustering {
     pub normals: Vec<Vec3>,
 }
 
-/// k-means over (position / diagonal, normal * weight), seeded with evenly
-/// spaced entries of the Halton order (which is already well spread), a
-/// fixed number of Lloyd iterations, ties to the lower index: deterministic.
+/// k-means over (position / diagonal, normal * weight), seeded by k-means++
+/// (each seed drawn with probability proportional to its squared distance
+/// from the seeds so far) and a fixed number of Lloyd iterations; a cluster
+/// left empty restarts at the entry farthest from its centre. Ties go to the
+/// lower index and the draws come from `seed`: deterministic.
+///
+/// Evenly spaced entries of the Halton order are not a usable seeding: every
+/// 16th index shares its low bits, so its base-2 radical inverse (which picks
+/// the triangle) falls in one sixteenth of the area, and most clusters came
+/// out empty.
 pub(crate) fn cluster_entries(
     positions: &[Vec3],
     normals: &[Vec3],
     clusters: usize,
     normal_weight: f32,
     diagonal: f32,
+    seed: u64,
 ) -> Clustering {
     let feature = |index: usize| (positions[index] / diagonal, normals[index] * normal_weight);
+    let distance = |index: usize, centre: &(Vec3, Vec3)| {
+        let (position, normal) = feature(index);
+        position.distance_squared(centre.0) + normal.distance_squared(centre.1)
+    };
     let count = positions.len();
-    let mut centres: Vec<(Vec3, Vec3)> = (0..clusters)
-        .map(|cluster| feature(cluster * count / clusters))
+    let mut rng = SampleStream::new(seed, u64::MAX, 0);
+    let mut centres: Vec<(Vec3, Vec3)> = Vec::with_capacity(clusters);
+    centres.push(feature(
+        (rng.next_f32() as f64 * count as f64) as usize % count,
+    ));
+    let mut nearest: Vec<f32> = (0..count)
+        .map(|index| distance(index, &centres[0]))
         .collect();
+    while centres.len() < clusters {
+        let total: f64 = nearest.iter().map(|&d| d as f64).sum();
+        let chosen = if total > 0.0 {
+            let target = rng.next_f32() as f64 * total;
+            let mut running = 0.0f64;
+            let mut chosen = count - 1;
+            for (index, &d) in nearest.iter().enumerate() {
+                running += d as f64;
+                if running > target && d > 0.0 {
+                    chosen = index;
+                    break;
+                }
+            }
+            chosen
+        } else {
+            // Fewer distinct entries than clusters: duplicates stay empty.
+            centres.len() % count
+        };
+        let centre = feature(chosen);
+        for (index, slot) in nearest.iter_mut().enumerate() {
+            *slot = slot.min(distance(index, &centre));
+        }
+        centres.push(centre);
+    }
     let mut assignment = vec![0u32; count];
+    let mut distances = vec![0.0f32; count];
     for _ in 0..16 {
         let changed: usize = assignment
             .par_iter_mut()
+            .zip(distances.par_iter_mut())
             .enumerate()
-            .map(|(index, slot)| {
-                let (position, normal) = feature(index);
+            .map(|(index, (slot, slot_distance))| {
                 let mut best = (f32::INFINITY, 0u32);
-                for (cluster, (centre_position, centre_normal)) in centres.iter().enumerate() {
-                    let distance = position.distance_squared(*centre_position)
-                        + normal.distance_squared(*centre_normal);
-                    if distance < best.0 {
-                        best = (distance, cluster as u32);
+                for (cluster, centre) in centres.iter().enumerate() {
+                    let d = distance(index, centre);
+                    if d < best.0 {
+                        best = (d, cluster as u32);
                     }
                 }
                 let changed = (*slot != best.1) as usize;
                 *slot = best.1;
+                *slot_distance = best.0;
                 changed
             })
             .sum();
@@ -416,13 +522,28 @@ pub(crate) fn cluster_entries(
             sum.1 += normal;
             sum.2 += 1;
         }
+        let mut restarted = false;
         for (centre, sum) in centres.iter_mut().zip(&sums) {
-            // An emptied cluster keeps its centre; it may win entries back.
             if sum.2 > 0 {
                 *centre = (sum.0 / sum.2 as f32, sum.1 / sum.2 as f32);
+            } else {
+                // The worst-served entry becomes the empty cluster's centre.
+                let (farthest, &worst) =
+                    distances
+                        .iter()
+                        .enumerate()
+                        .fold(
+                            (0, &-1.0f32),
+                            |best, item| if item.1 > best.1 { item } else { best },
+                        );
+                if worst > 0.0 {
+                    *centre = feature(farthest);
+                    distances[farthest] = 0.0;
+                    restarted = true;
+                }
             }
         }
-        if changed == 0 {
+        if changed == 0 && !restarted {
             break;
         }
     }

@@ -70,6 +70,8 @@ pub struct PrmParams {
     pub top_k: u32,
     pub selection: String,
     pub paths_per_entry: u32,
+    pub entry_area_samples: u32,
+    pub rank: u32,
     pub normal_weight: f32,
     pub max_memory_mib: u64,
     pub seed: u64,
@@ -80,9 +82,11 @@ impl Default for PrmParams {
         Self {
             entries: 4096,
             clusters: 256,
-            top_k: 32,
+            top_k: 0,
             selection: "contribution".into(),
             paths_per_entry: 4,
+            entry_area_samples: 4,
+            rank: 32,
             normal_weight: 0.5,
             max_memory_mib: 2048,
             seed: 1,
@@ -98,6 +102,10 @@ impl PrmParams {
             Some("clusters must be between 1 and entries")
         } else if self.selection != "weight" && self.selection != "contribution" {
             Some("selection must be \"weight\" or \"contribution\"")
+        } else if self.rank > self.clusters {
+            Some("rank must be at most clusters (0 = no compression)")
+        } else if self.entry_area_samples == 0 {
+            Some("entry_area_samples must be at least 1")
         } else if self.paths_per_entry == 0 {
             Some("paths_per_entry must be at least 1")
         } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
@@ -162,6 +170,12 @@ impl TechniqueKind for PrmKind {
         } else {
             Selection::Weight
         };
-        Ok(Box::new(Prm::new(context, bake, params.top_k, selection)))
+        Ok(Box::new(Prm::new(
+            context,
+            bake,
+            params.top_k,
+            selection,
+            params.entry_area_samples,
+        )))
     }
 }

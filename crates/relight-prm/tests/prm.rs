@@ -24,12 +24,26 @@ fn context(scene: &str, resolution: u32) -> Arc<SceneContext> {
     Arc::new(SceneContext::new(scene, settings).unwrap())
 }
 
-/// Lightmap relRMSE of PRM against a path-traced reference, for each
-/// (top_k, selection) run, and the reference's own noise.
+/// A bake and the parameters it was made with.
+type CachedBake = (Vec<(String, String)>, Vec<u8>);
+
+/// Parameters only the bake reads.
+const BAKE_KEYS: [&str; 6] = [
+    "entries",
+    "clusters",
+    "paths_per_entry",
+    "normal_weight",
+    "seed",
+    "rank",
+];
+
+/// Lightmap relRMSE of PRM against a path-traced reference for each run (a
+/// full parameter list; runs with the same bake parameters share a bake),
+/// and the reference's own noise.
 fn lightmap_errors(
     scene: &str,
-    bake_params: &[(String, String)],
-    runs: &[(u32, &str)],
+    reference_samples: u32,
+    runs: &[&[(&str, &str)]],
 ) -> (Vec<f64>, f64) {
     let context = context(scene, 64);
     let lights = context.scene.lights.clone();
@@ -37,20 +51,34 @@ fn lightmap_errors(
         &context,
         &lights,
         PathSettings::default(),
-        2048,
+        reference_samples,
         &NoProgress,
     );
     let noise = relative_noise(&reference.mean, &reference.standard_error);
-    let bake = PrmKind.bake(&context, bake_params, &NoProgress).unwrap();
+    let mut bakes: Vec<CachedBake> = Vec::new();
     let errors = runs
         .iter()
-        .map(|(top_k, selection)| {
-            let params = [
-                ("top_k".to_string(), top_k.to_string()),
-                ("selection".to_string(), format!("\"{selection}\"")),
-            ];
+        .map(|run| {
+            let params: Vec<(String, String)> = run
+                .iter()
+                .map(|(key, value)| (key.to_string(), value.to_string()))
+                .collect();
+            let bake_params: Vec<(String, String)> = params
+                .iter()
+                .filter(|(key, _)| BAKE_KEYS.contains(&key.as_str()))
+                .cloned()
+                .collect();
+            if !bakes.iter().any(|(known, _)| *known == bake_params) {
+                let bake = PrmKind.bake(&context, &bake_params, &NoProgress).unwrap();
+                bakes.push((bake_params.clone(), bake));
+            }
+            let bake = &bakes
+                .iter()
+                .find(|(known, _)| *known == bake_params)
+                .unwrap()
+                .1;
             let mut prm = PrmKind
-                .create(context.clone(), Some(&bake), &params, &NoProgress)
+                .create(context.clone(), Some(bake), &params, &NoProgress)
                 .unwrap();
             prm.update(&Frame {
                 lights: &lights,
@@ -64,42 +92,69 @@ fn lightmap_errors(
 }
 
 #[test]
-fn cornell_box_area_light_within_bound_and_error_grows_as_k_falls() {
-    let runs = [
-        (0, "weight"),
-        (32, "weight"),
-        (8, "weight"),
-        (32, "contribution"),
+fn cornell_box_within_bound_error_grows_as_k_falls_and_compression_beats_top_k() {
+    let uncompressed = ("rank", "0");
+    let runs: [&[(&str, &str)]; 5] = [
+        &[uncompressed, ("top_k", "0")],
+        &[uncompressed, ("top_k", "32")],
+        &[uncompressed, ("top_k", "8")],
+        &[uncompressed, ("top_k", "32"), ("selection", "\"weight\"")],
+        &[("rank", "32"), ("top_k", "0")],
     ];
-    let (errors, noise) = lightmap_errors("cornell-box", &[], &runs);
+    let (errors, noise) = lightmap_errors("cornell-box", 2048, &runs);
     eprintln!(
-        "cornell-box: all {:.4}, K=32 {:.4}, K=8 {:.4}, K=32 by contribution {:.4}; reference noise {noise:.4}",
-        errors[0], errors[1], errors[2], errors[3]
+        "cornell-box: all {:.4}, K=32 {:.4}, K=8 {:.4}, K=32 by weight {:.4}, rank 32 {:.4}; reference noise {noise:.4}",
+        errors[0], errors[1], errors[2], errors[3], errors[4]
     );
-    // The bound for all clusters is 15 %; the reference's own noise
-    // (about 3 % here) is part of the measured error, so the test allows the
-    // bound plus nothing: the measured value must already be under 15 %.
+    // The bound for all clusters is 15 %, and the reference's own
+    // noise (about 3 % here) is inside the measured error: no allowance.
     assert!(errors[0] < 0.15, "all clusters: {}", errors[0]);
     assert!(errors[0] < errors[1] && errors[1] < errors[2], "{errors:?}");
-    // Ranking by contribution keeps more of the light than ranking by
-    // weight alone (17.8 % against 23.2 % here); the 2-point margin is above
-    // the run-to-run spread of both, which share one bake and reference.
-    assert!(errors[3] < errors[1] - 0.02, "{errors:?}");
+    // Ranking by contribution keeps more light than ranking by weight.
+    assert!(errors[1] < errors[3], "{errors:?}");
+    // Same per-frame cost (32 panes summed): 32 principal components of all
+    // 256 clusters lose far less than the 32 strongest clusters (about 16 %
+    // against 48 % at the automatic lightmap size); a 10-point margin.
+    assert!(errors[4] < errors[1] - 0.10, "{errors:?}");
 }
 
 #[test]
-fn corridor_light_paths_within_bound_without_clustering() {
-    // One pane per entry point isolates the light-path estimator from the
-    // clustering approximation. (With the default 256 clusters the corridor
-    // measures about 21 %: its point light sits close to the ceiling, so
-    // irradiance varies strongly inside a cluster; that gap is open work.)
-    let params = [("clusters".to_string(), "4096".to_string())];
-    let (errors, noise) = lightmap_errors("corridor", &params, &[(0, "weight")]);
+fn corridor_within_bound_with_all_clusters() {
+    // The paper's 256 clusters, all used, stored uncompressed. 8192 paths
+    // keep the reference's noise (4.3 % at 2048) from eating the margin: the
+    // measured error is about 14 % of which the noise is about 2 points.
+    let (errors, noise) = lightmap_errors("corridor", 8192, &[&[("rank", "0"), ("top_k", "0")]]);
     eprintln!(
-        "corridor, no clustering: {:.4}; reference noise {noise:.4}",
+        "corridor, 256 clusters, all used: {:.4}; reference noise {noise:.4}",
         errors[0]
     );
-    assert!(errors[0] < 0.15, "no clustering: {}", errors[0]);
+    assert!(errors[0] < 0.15, "all clusters: {}", errors[0]);
+}
+
+#[test]
+fn every_cluster_receives_entry_points() {
+    // Regression: seeding k-means with every 16th Halton entry put all seeds
+    // in one sixteenth of the area and left 190 of 256 clusters empty.
+    for scene in ["cornell-box", "corridor", "two-rooms"] {
+        let context = context(scene, 64);
+        let params = PrmParams {
+            paths_per_entry: 1,
+            rank: 0,
+            ..PrmParams::default()
+        };
+        let bake = PrmBake::build(&context, &params, &NoProgress).unwrap();
+        let mut sizes = vec![0u32; bake.cluster_count];
+        for &cluster in &bake.entry_clusters {
+            sizes[cluster as usize] += 1;
+        }
+        let empty = sizes.iter().filter(|&&size| size == 0).count();
+        let largest = *sizes.iter().max().unwrap();
+        eprintln!("{scene}: {empty} empty clusters, largest {largest} entries");
+        assert_eq!(empty, 0, "{scene}");
+        // 16 entries per cluster on average; k-means on even Halton points
+        // stays within a few times that.
+        assert!(largest <= 64, "{scene}: largest cluster {largest}");
+    }
 }
 
 #[test]
@@ -108,6 +163,7 @@ fn bake_is_identical_on_one_and_two_threads() {
     let params = PrmParams {
         entries: 512,
         clusters: 32,
+        rank: 8,
         ..PrmParams::default()
     };
     let bake_with = |threads: usize| {
@@ -130,6 +186,7 @@ fn corrupt_payloads_are_errors_not_panics() {
     let params = PrmParams {
         entries: 256,
         clusters: 16,
+        rank: 4,
         ..PrmParams::default()
     };
     let bytes = PrmBake::build(&context, &params, &NoProgress)
