@@ -3,7 +3,7 @@
 //! path tracer and the frame-to-frame change of the indirect lightmap next
 //! to the reference's own frame-to-frame change.
 //!
-//! Run: `cargo run --release -p relight-prm --example flicker [SCENE.toml]`
+//! Run: `cargo run --release -p relight-prm --example flicker [SCENE.toml [RESOLUTION]]`
 
 use glam::{Quat, Vec3};
 use relight_prm::PrmKind;
@@ -46,8 +46,17 @@ fn main() {
         .to_string()
     });
     let scene = relight_scene::load_scene(std::path::Path::new(&path)).expect("scene loads");
+    // Second argument: lightmap resolution (0 or absent: automatic).
+    let resolution: u32 = std::env::args()
+        .nth(2)
+        .map(|value| value.parse().expect("resolution"))
+        .unwrap_or(0);
     let settings = ContextSettings {
-        lightmap: TexelDensity::TargetResolution(64),
+        lightmap: if resolution == 0 {
+            TexelDensity::default()
+        } else {
+            TexelDensity::TargetResolution(resolution)
+        },
         ..ContextSettings::default()
     };
     let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
@@ -80,17 +89,30 @@ fn main() {
         "reference frame-to-frame change: {:.2} %",
         mean_change(&reference) * 100.0
     );
-    println!("| clusters | top_k | mean lightmap relRMSE | frame-to-frame change |");
-    println!("|---:|---:|---:|---:|");
-    for clusters in [64u32, 256, 1024, 4096] {
+    println!("| clusters | rank | top_k | mean lightmap relRMSE | frame-to-frame change |");
+    println!("|---:|---:|---:|---:|---:|");
+    let runs: [(u32, u32, u32); 8] = [
+        (64, 0, 0),
+        (256, 0, 0),
+        (256, 0, 32),
+        (256, 32, 0),
+        (256, 16, 0),
+        (1024, 0, 0),
+        (1024, 32, 0),
+        (4096, 0, 0),
+    ];
+    for (clusters, rank, top_k) in runs {
         let bake = PrmKind
             .bake(
                 &context,
-                &[("clusters".into(), clusters.to_string())],
+                &[
+                    ("clusters".into(), clusters.to_string()),
+                    ("rank".into(), rank.to_string()),
+                ],
                 &NoProgress,
             )
             .expect("bake");
-        for top_k in [0u32, 32] {
+        {
             let mut prm = PrmKind
                 .create(
                     context.clone(),
@@ -112,7 +134,7 @@ fn main() {
                 frames.push(values);
             }
             println!(
-                "| {clusters} | {} | {:.1} % | {:.2} % |",
+                "| {clusters} | {rank} | {} | {:.1} % | {:.2} % |",
                 if top_k == 0 {
                     "all".to_string()
                 } else {

@@ -3,26 +3,40 @@
 //!
 //! Data flow. Bake: entry points are sampled on all surfaces in proportion
 //! to area (Halton, low discrepancy) and clustered by position and normal
-//! (k-means); from each entry point quasi-random light paths (cosine
-//! directions, Russian roulette by albedo luminance, equations 1 to 3) leave
-//! virtual point lights, and every lightmap receiver (the paper's exit
-//! points) gathers from them by shadow rays, assuming unit irradiance at the
-//! entry point. The result, summed per cluster, is one pane per cluster,
-//! stored as f16 RGB. Every frame: the shared direct-light service gives
-//! each entry point's irradiance, a cluster's weight is the mean over its
-//! entries, and the top-K clusters by weight, each pane times its weight,
-//! sum into the indirect lightmap, which is dilated and sampled bilinearly.
+//! (k-means++ seeding, Lloyd iterations); from each entry point quasi-random
+//! light paths (cosine directions, Russian roulette by albedo luminance,
+//! equations 1 to 3) leave virtual point lights, and every lightmap receiver
+//! (the paper's exit points) gathers from them by shadow rays, assuming unit
+//! irradiance at the entry point. The result, summed per cluster, is one
+//! pane per cluster; by default the panes are then compressed to their
+//! leading principal components (`rank` basis panes and a coefficient per
+//! cluster and component), stored as f16 RGB. Every frame: the shared
+//! direct-light service gives each entry point's irradiance, a cluster's
+//! weight is the mean over its entries, the top-K clusters (or all) are
+//! selected, and their panes times their weights sum into the indirect
+//! lightmap (with compression, the selected weights fold into one weight per
+//! basis pane first), which is dilated and sampled bilinearly.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|
 //! | `entries` | 4096 | entry points (the paper: 4096) |
-//! | `clusters` | 256 | panes after clustering (the paper: 256) |
-//! | `top_k` | 32 | clusters summed per frame (the paper: 32); 0 = all |
+//! | `clusters` | 256 | clusters of entry points (the paper: 256) |
+//! | `rank` | 32 | basis panes kept by compression; 0 = store every cluster's pane |
+//! | `top_k` | 0 | clusters summed per frame (the paper: 32); 0 = all |
 //! | `selection` | `"contribution"` | how the top K are ranked: `"contribution"` (weight times the pane's total luminance) or `"weight"` (mean entry irradiance alone, as the paper does) |
+//! | `entry_area_samples` | 4 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
 //! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
 //! | `seed` | 1 | |
+//!
+//! Why compression and all clusters by default: the per-frame cost is the
+//! number of panes summed, and 32 principal components of all 256 clusters
+//! cost the same as the paper's 32 strongest clusters while losing far less
+//! light (Cornell box lightmap error 16 % against 48 %: in a room lit
+//! everywhere, the 224 weaker clusters carry half the indirect light). They
+//! also take an eighth of the memory. `rank = 0, top_k = 32` is the paper's
+//! configuration.
 //!
 //! Choose PRM for small and medium static scenes with few, moving lights
 //! where a lightmap is wanted anyway: its per-frame cost is K lightmap-sized
@@ -42,8 +56,9 @@
 //!   whose light goes nowhere can displace a dimmer one that lights half the
 //!   room. relight ranks by weight times the pane's total luminance, the
 //!   light a cluster adds (`selection = "weight"` restores the paper's
-//!   ranking). At K = 32 this lowers the Cornell box's lightmap error from
-//!   21.7 % to 16.3 % and the two rooms' from 42.3 % to 27.7 %.
+//!   ranking). At K = 32 (uncompressed) this lowers the Cornell box's
+//!   lightmap error from 55.3 % to 47.9 % and the point-lit Cornell box's
+//!   from 31.3 % to 29.2 %.
 //! - Entry points face their triangle's front side; light reaching only the
 //!   back of thin two-sided geometry does not enter the panes.
 //! - Points in space (dynamic objects) get an approximation: one bounce from
@@ -132,7 +147,7 @@ impl TechniqueKind for PrmKind {
         "prm"
     }
     fn summary(&self) -> &'static str {
-        "Precomputed Radiance Maps: light paths from clustered entry points, top-K panes per frame"
+        "Precomputed Radiance Maps: light paths from clustered entry points, panes compressed by PCA, weighted per frame"
     }
     fn needs_bake(&self) -> bool {
         true
