@@ -24,7 +24,7 @@
 //! | `rank` | 32 | basis panes kept by compression; 0 = store every cluster's pane |
 //! | `top_k` | 0 | clusters summed per frame (the paper: 32); 0 = all |
 //! | `selection` | `"contribution"` | how the top K are ranked: `"contribution"` (weight times the pane's total luminance) or `"weight"` (mean entry irradiance alone, as the paper does) |
-//! | `entry_area_samples` | 4 | shadow rays per entry point toward area lights each frame |
+//! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
 //! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
@@ -100,7 +100,7 @@ impl Default for PrmParams {
             top_k: 0,
             selection: "contribution".into(),
             paths_per_entry: 4,
-            entry_area_samples: 4,
+            entry_area_samples: 2,
             rank: 32,
             normal_weight: 0.5,
             max_memory_mib: 2048,
