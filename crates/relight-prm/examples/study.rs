@@ -65,16 +65,6 @@ fn parse(set: &str) -> Vec<(String, String)> {
         .collect()
 }
 
-/// Parameters only the bake reads; the rest are run-time parameters.
-const BAKE_KEYS: [&str; 6] = [
-    "entries",
-    "clusters",
-    "paths_per_entry",
-    "normal_weight",
-    "seed",
-    "rank",
-];
-
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [scene_path, resolution, samples, sets @ ..] = args.as_slice() else {
@@ -113,7 +103,7 @@ fn main() {
         let params = parse(set);
         let bake_params: Vec<(String, String)> = params
             .iter()
-            .filter(|(key, _)| BAKE_KEYS.contains(&key.as_str()))
+            .filter(|(key, _)| relight_prm::BAKE_PARAMETERS.contains(&key.as_str()))
             .cloned()
             .collect();
         let started = Instant::now();

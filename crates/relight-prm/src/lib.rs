@@ -76,6 +76,17 @@ use relight_technique::{
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
+/// The parameters only the bake reads; the others act at run time, so one
+/// bake serves every value of them.
+pub const BAKE_PARAMETERS: [&str; 6] = [
+    "entries",
+    "clusters",
+    "paths_per_entry",
+    "normal_weight",
+    "seed",
+    "rank",
+];
+
 /// Parameters of PRM, bake and run time together.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]

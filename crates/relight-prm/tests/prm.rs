@@ -27,16 +27,6 @@ fn context(scene: &str, resolution: u32) -> Arc<SceneContext> {
 /// A bake and the parameters it was made with.
 type CachedBake = (Vec<(String, String)>, Vec<u8>);
 
-/// Parameters only the bake reads.
-const BAKE_KEYS: [&str; 6] = [
-    "entries",
-    "clusters",
-    "paths_per_entry",
-    "normal_weight",
-    "seed",
-    "rank",
-];
-
 /// Lightmap relRMSE of PRM against a path-traced reference for each run (a
 /// full parameter list; runs with the same bake parameters share a bake),
 /// and the reference's own noise.
@@ -65,7 +55,7 @@ fn lightmap_errors(
                 .collect();
             let bake_params: Vec<(String, String)> = params
                 .iter()
-                .filter(|(key, _)| BAKE_KEYS.contains(&key.as_str()))
+                .filter(|(key, _)| relight_prm::BAKE_PARAMETERS.contains(&key.as_str()))
                 .cloned()
                 .collect();
             if !bakes.iter().any(|(known, _)| *known == bake_params) {
