@@ -195,8 +195,7 @@ impl SceneOptions {
                 Some(resolution) if !(8..=16384).contains(&resolution) => {
                     bail!("--lightmap-resolution must be between 8 and 16384, got {resolution}")
                 }
-                Some(resolution) => TexelDensity::TargetResolution(resolution),
-                None => TexelDensity::Automatic { minimum: 128 },
+                resolution => TexelDensity::from_resolution(resolution),
             },
         };
         Ok(ContextSettings {

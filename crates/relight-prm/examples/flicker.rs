@@ -47,16 +47,12 @@ fn main() {
     });
     let scene = relight_scene::load_scene(std::path::Path::new(&path)).expect("scene loads");
     // Second argument: lightmap resolution (0 or absent: automatic).
-    let resolution: u32 = std::env::args()
+    let resolution = std::env::args()
         .nth(2)
-        .map(|value| value.parse().expect("resolution"))
-        .unwrap_or(0);
+        .map(|value| value.parse::<u32>().expect("resolution"))
+        .filter(|&resolution| resolution != 0);
     let settings = ContextSettings {
-        lightmap: if resolution == 0 {
-            TexelDensity::default()
-        } else {
-            TexelDensity::TargetResolution(resolution)
-        },
+        lightmap: TexelDensity::from_resolution(resolution),
         ..ContextSettings::default()
     };
     let context = Arc::new(SceneContext::new(scene, settings).expect("context"));

@@ -75,11 +75,7 @@ fn main() {
     let samples: u32 = samples.parse().expect("reference samples");
     let scene = relight_scene::load_scene(std::path::Path::new(scene_path)).expect("scene loads");
     let settings = ContextSettings {
-        lightmap: if resolution == 0 {
-            TexelDensity::default()
-        } else {
-            TexelDensity::TargetResolution(resolution)
-        },
+        lightmap: TexelDensity::from_resolution(Some(resolution).filter(|&r| r != 0)),
         ..ContextSettings::default()
     };
     let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
@@ -136,10 +132,7 @@ fn main() {
             bake.len() as f64 / 1048576.0
         );
         let decoded = relight_prm::PrmBake::decode(bake).expect("decode");
-        let mut sizes = vec![0u32; decoded.cluster_count];
-        for &cluster in &decoded.entry_clusters {
-            sizes[cluster as usize] += 1;
-        }
+        let sizes = decoded.cluster_sizes();
         println!(
             "    captured energy {:.6}, empty clusters {}, largest cluster {}",
             decoded.captured_energy,

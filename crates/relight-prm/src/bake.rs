@@ -174,13 +174,13 @@ impl PrmBake {
         })
     }
 
-    /// Panes stored: clusters, or basis panes when compressed.
-    pub fn stored_panes(&self) -> usize {
-        if self.rank > 0 {
-            self.rank
-        } else {
-            self.cluster_count
+    /// Entry points in each cluster.
+    pub fn cluster_sizes(&self) -> Vec<u32> {
+        let mut sizes = vec![0u32; self.cluster_count];
+        for &cluster in &self.entry_clusters {
+            sizes[cluster as usize] += 1;
         }
+        sizes
     }
 
     /// The pane of one entry point at `position` with `normal`, `albedo`

@@ -23,15 +23,16 @@ pub struct Prm {
     entry_irradiance: Vec<Rgb>,
     cluster_weights: Vec<Rgb>,
     selected: Vec<u32>,
-    /// With compression: the weight of each basis pane this frame.
-    basis_weights: Vec<Rgb>,
-    basis_indices: Vec<u32>,
+    /// This frame's stored panes and their weights: the selected clusters,
+    /// or with compression every basis pane.
+    terms: Vec<(u32, Rgb)>,
     receiver_values: Vec<Rgb>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
-    /// Shadow rays per entry point toward area lights: a cluster's weight
-    /// averages its entries, so each needs fewer than a lightmap texel.
-    entry_area_samples: u32,
+    /// The direct-light settings for entry points: fewer shadow rays toward
+    /// area lights than a lightmap texel gets, since a cluster's weight
+    /// averages its entries.
+    entry_direct: DirectSettings,
     /// Entry points per cluster (fixed by the bake).
     cluster_sizes: Vec<u32>,
     /// Per cluster, the factor its weight's luminance is ranked by: 1 for
@@ -58,10 +59,7 @@ impl Prm {
         selection: Selection,
         entry_area_samples: u32,
     ) -> Self {
-        let mut cluster_sizes = vec![0u32; bake.cluster_count];
-        for &cluster in &bake.entry_clusters {
-            cluster_sizes[cluster as usize] += 1;
-        }
+        let cluster_sizes = bake.cluster_sizes();
         let ranking_scale = match selection {
             Selection::Weight => vec![1.0; bake.cluster_count],
             Selection::Contribution => {
@@ -108,35 +106,26 @@ impl Prm {
             entry_irradiance: vec![Rgb::ZERO; bake.entry_positions.len()],
             cluster_weights: vec![Rgb::ZERO; bake.cluster_count],
             selected: Vec::with_capacity(top_k),
-            basis_weights: vec![Rgb::ZERO; bake.rank],
-            basis_indices: (0..bake.rank as u32).collect(),
+            terms: Vec::with_capacity(top_k.max(bake.rank)),
+            entry_direct: DirectSettings {
+                area_light_samples: entry_area_samples,
+                ..context.settings.direct
+            },
             receiver_values: vec![Rgb::ZERO; receivers],
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             context,
             bake,
             top_k,
             timings: StageTimings::default(),
-            entry_area_samples,
             cluster_sizes,
             ranking_scale,
         }
     }
-
-    /// Clusters selected in the last update, strongest first.
-    pub fn selected_clusters(&self) -> &[u32] {
-        &self.selected
-    }
 }
 
-/// out[r] = sum over selected panes of weight * pane[r], blocked over
+/// out[r] = sum over (pane, weight) terms of weight * pane[r], blocked over
 /// receivers so each block's accumulators stay in L1.
-fn sum_panes(
-    panes: &[half::f16],
-    receivers: usize,
-    selected: &[u32],
-    weights: &[Rgb],
-    out: &mut [Rgb],
-) {
+fn sum_panes(panes: &[half::f16], receivers: usize, terms: &[(u32, Rgb)], out: &mut [Rgb]) {
     let wide = wide_kernel_available();
     out.par_chunks_mut(RECEIVER_BLOCK)
         .enumerate()
@@ -144,13 +133,12 @@ fn sum_panes(
             let start = block * RECEIVER_BLOCK;
             let mut accumulator = [0.0f32; RECEIVER_BLOCK * 3];
             let length = values.len() * 3;
-            for &cluster in selected {
-                let weight = weights[cluster as usize];
+            for &(pane_index, weight) in terms {
                 // Eight RGB triples per 24 floats: a fixed weight pattern
                 // lets the multiply-add run as plain SIMD lanes, not
                 // strided RGB.
                 let pattern: [f32; 24] = std::array::from_fn(|lane| weight[lane % 3]);
-                let offset = (cluster as usize * receivers + start) * 3;
+                let offset = (pane_index as usize * receivers + start) * 3;
                 let pane = &panes[offset..offset + length];
                 if wide {
                     // SAFETY: the CPU has AVX2, FMA and F16C (checked above).
@@ -245,10 +233,7 @@ impl Technique for Prm {
         let context = &self.context;
         let bake = &self.bake;
         let entry_irradiance = &mut self.entry_irradiance;
-        let settings = DirectSettings {
-            area_light_samples: self.entry_area_samples,
-            ..context.settings.direct
-        };
+        let settings = self.entry_direct;
         self.timings.time("entry irradiance", || {
             DirectLight::new(&context.scene, &context.bvh, &context.emitters, settings)
                 .irradiance_batch(
@@ -274,45 +259,41 @@ impl Technique for Prm {
             }
             selected.clear();
             selected.extend(0..bake.cluster_count as u32);
-            let rank =
-                |cluster: u32| luminance(weights[cluster as usize]) * scale[cluster as usize];
-            // Strongest first; equal ranks keep index order (deterministic).
-            selected.sort_by(|&a, &b| rank(b).total_cmp(&rank(a)).then(a.cmp(&b)));
-            selected.truncate(top_k);
+            // Ranking only matters when some clusters are left out.
+            if top_k < bake.cluster_count {
+                let rank =
+                    |cluster: u32| luminance(weights[cluster as usize]) * scale[cluster as usize];
+                // Strongest first; equal ranks keep index order (deterministic).
+                selected.sort_by(|&a, &b| rank(b).total_cmp(&rank(a)).then(a.cmp(&b)));
+                selected.truncate(top_k);
+            }
             selected.retain(|&cluster| weights[cluster as usize] != Rgb::ZERO);
         });
         let receiver_values = &mut self.receiver_values;
-        let (basis_weights, basis_indices) = (&mut self.basis_weights, &self.basis_indices);
+        let terms = &mut self.terms;
         self.timings.time("pane sum", || {
+            terms.clear();
             if bake.rank == 0 {
-                sum_panes(
-                    &bake.panes,
-                    bake.receiver_count,
-                    selected,
-                    weights,
-                    receiver_values,
-                )
+                terms.extend(
+                    selected
+                        .iter()
+                        .map(|&cluster| (cluster, weights[cluster as usize])),
+                );
             } else {
                 // sum_k w_k P_k ~ sum_j (sum_k w_k c_kj) B_j: the selected
                 // clusters fold into one weight per basis pane, so the cost
                 // is rank panes whatever K is.
-                basis_weights.fill(Rgb::ZERO);
+                terms.extend((0..bake.rank as u32).map(|basis| (basis, Rgb::ZERO)));
                 for &cluster in selected.iter() {
                     let weight = weights[cluster as usize];
                     let row = &bake.coefficients
                         [cluster as usize * bake.rank..(cluster as usize + 1) * bake.rank];
-                    for (basis_weight, &coefficient) in basis_weights.iter_mut().zip(row) {
+                    for ((_, basis_weight), &coefficient) in terms.iter_mut().zip(row) {
                         *basis_weight += weight * coefficient;
                     }
                 }
-                sum_panes(
-                    &bake.panes,
-                    bake.receiver_count,
-                    basis_indices,
-                    basis_weights,
-                    receiver_values,
-                )
             }
+            sum_panes(&bake.panes, bake.receiver_count, terms, receiver_values)
         });
         let lightmap = &mut self.lightmap;
         self.timings.time("dilation", || {

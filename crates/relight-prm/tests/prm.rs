@@ -133,10 +133,7 @@ fn every_cluster_receives_entry_points() {
             ..PrmParams::default()
         };
         let bake = PrmBake::build(&context, &params, &NoProgress).unwrap();
-        let mut sizes = vec![0u32; bake.cluster_count];
-        for &cluster in &bake.entry_clusters {
-            sizes[cluster as usize] += 1;
-        }
+        let sizes = bake.cluster_sizes();
         let empty = sizes.iter().filter(|&&size| size == 0).count();
         let largest = *sizes.iter().max().unwrap();
         eprintln!("{scene}: {empty} empty clusters, largest {largest} entries");

@@ -51,6 +51,13 @@ impl Default for TexelDensity {
     }
 }
 
+impl TexelDensity {
+    /// A fixed resolution when one is given, the automatic size otherwise.
+    pub fn from_resolution(resolution: Option<u32>) -> Self {
+        resolution.map_or_else(Self::default, Self::TargetResolution)
+    }
+}
+
 /// One lightmap texel that covers geometry.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Receiver {
