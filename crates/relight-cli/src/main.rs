@@ -263,8 +263,7 @@ fn create_technique(
                     kind.name()
                 );
             }
-            let fingerprint = relight_technique::scene_fingerprint(&context.scene, &context.atlas);
-            if header.scene_fingerprint != fingerprint {
+            if header.scene_fingerprint != context.fingerprint() {
                 bail!(
                     "{}: this bake was made for another scene or lightmap resolution; bake again",
                     path.display()
@@ -397,10 +396,7 @@ fn run(cli: Cli) -> Result<()> {
             let header = relight_technique::BakeHeader {
                 technique: kind.name().to_string(),
                 payload_version: 1,
-                scene_fingerprint: relight_technique::scene_fingerprint(
-                    &context.scene,
-                    &context.atlas,
-                ),
+                scene_fingerprint: context.fingerprint(),
             };
             relight_technique::write_bake_atomic(&output, &header, &payload)?;
             say!(
@@ -515,8 +511,7 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
     }
     if let Some(bake) = bake {
         let (header, payload) = relight_technique::read_bake(bake)?;
-        let matches =
-            header.scene_fingerprint == relight_technique::scene_fingerprint(scene, atlas);
+        let matches = header.scene_fingerprint == context.fingerprint();
         say!(
             "bake            {} ({} payload version {}, {} bytes)",
             bake.display(),

@@ -71,7 +71,7 @@ fn convert_block(
 /// Lower triangle of the Gram matrix `rows x rows`, in f64. Blocks of columns
 /// are split into a number of groups fixed by the sizes; each group sums its
 /// blocks in order and the groups are added in order.
-pub fn gram(rows: &[f16], row_count: usize, row_length: usize) -> Vec<f64> {
+fn gram(rows: &[f16], row_count: usize, row_length: usize) -> Vec<f64> {
     assert_eq!(rows.len(), row_count * row_length);
     let blocks = row_length.div_ceil(BLOCK);
     // At most 16 partial matrices, and no more than 256 MiB of them.

@@ -76,6 +76,12 @@ impl SampleStream {
     }
 }
 
+/// The Cranley-Patterson shift of `stratified_square` for one work item:
+/// drawn once per item from a stream no sample index uses.
+pub fn stratification_offset(seed: u64, item: u64) -> Vec2 {
+    SampleStream::new(seed, item, u64::MAX).next_vec2()
+}
+
 /// Sample `index` of `total` stratified over a square grid of
 /// floor(sqrt(total))^2 cells (jittered inside its cell; indices past the grid
 /// are uniform), then toroidally shifted by `offset` (Cranley-Patterson) so

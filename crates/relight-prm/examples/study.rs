@@ -81,7 +81,7 @@ fn main() {
     let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
     let key = format!(
         "{}-{}-{}-{}",
-        relight_technique::scene_fingerprint(&context.scene, &context.atlas),
+        context.fingerprint(),
         context.atlas.width,
         context.atlas.receivers.len(),
         samples

@@ -5,11 +5,11 @@
 
 use crate::image::Image;
 use rayon::prelude::*;
-use relight_core::sampling::{stratified_square, SampleStream};
+use relight_core::sampling::{stratification_offset, stratified_square, SampleStream};
 use relight_core::Rgb;
 use relight_scene::Light;
 use relight_technique::{Progress, SceneContext, SurfacePoint, Technique};
-use relight_trace::path::{CameraRays, PathSettings, PathTracer};
+use relight_trace::path::{halves_estimate, CameraRays, PathSettings, PathTracer};
 
 /// The three images every render produces.
 #[derive(Clone, Debug)]
@@ -88,8 +88,8 @@ pub fn render_reference(
             let mut direct_sum = [0.0f64; 3];
             let mut indirect_halves = [[0.0f64; 3]; 2];
             for (part, indirect_sum) in indirect_halves.iter_mut().enumerate() {
-                let seed = settings.seed ^ (part as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-                let offset = SampleStream::new(seed, pixel, u64::MAX).next_vec2();
+                let seed = settings.half(part).seed;
+                let offset = stratification_offset(seed, pixel);
                 for sample in 0..half {
                     let mut rng = SampleStream::new(seed, pixel, sample as u64);
                     let ray = camera.ray(x, y, rng.next_vec2());
@@ -102,15 +102,12 @@ pub fn render_reference(
                     }
                 }
             }
-            let scale = 1.0 / half as f64;
             let [first, second] = indirect_halves;
+            let (indirect, indirect_error) = halves_estimate(first, second, half);
             (
-                to_rgb(direct_sum, 0.5 * scale),
-                to_rgb(std::array::from_fn(|c| first[c] + second[c]), 0.5 * scale),
-                to_rgb(
-                    std::array::from_fn(|c| (first[c] - second[c]).abs()),
-                    0.5 * scale,
-                ),
+                to_rgb(direct_sum, 0.5 / half as f64),
+                indirect,
+                indirect_error,
             )
         },
     )

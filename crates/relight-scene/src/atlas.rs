@@ -141,13 +141,6 @@ impl Atlas {
             return Ok(atlas);
         }
         let charts = grow_charts(scene);
-        let density = match density {
-            TexelDensity::Automatic { minimum } => {
-                let crowded = (2 * minimal_resolution(charts.len())).next_power_of_two();
-                TexelDensity::TargetResolution(minimum.max(crowded).min(16384))
-            }
-            fixed => fixed,
-        };
         let (metres_per_texel, (width, height, triangle_uvs)) = match density {
             TexelDensity::MetresPerTexel(metres) => {
                 (metres, pack_charts(scene, &charts, metres, None))
@@ -155,7 +148,10 @@ impl Atlas {
             TexelDensity::TargetResolution(resolution) => {
                 fit_resolution(scene, &charts, resolution)?
             }
-            TexelDensity::Automatic { .. } => unreachable!("resolved above"),
+            TexelDensity::Automatic { minimum } => {
+                let crowded = (2 * minimal_resolution(charts.len())).next_power_of_two();
+                fit_resolution(scene, &charts, minimum.max(crowded).min(16384))?
+            }
         };
         if (width as u64) * (height as u64) > 16384 * 16384 {
             return Err(SceneError::Invalid {

@@ -10,7 +10,7 @@ use glam::{Vec2, Vec3};
 use relight_core::sampling::{stratified_square, SampleStream};
 use relight_core::Rgb;
 use relight_scene::Light;
-use relight_trace::path::{PathSettings, PathTracer};
+use relight_trace::path::{halves_estimate, PathSettings, PathTracer};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -155,8 +155,7 @@ pub fn reference_receiver_irradiance(
     progress.start("reference lightmap", 2 * half as u64);
     let mut halves = [vec![[0.0f64; 3]; count], vec![[0.0f64; 3]; count]];
     for (index, sums) in halves.iter_mut().enumerate() {
-        let seed = settings.seed ^ (index as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        let tracer = PathTracer::new(&direct, PathSettings { seed, ..settings });
+        let tracer = PathTracer::new(&direct, settings.half(index));
         let mut done = 0u32;
         while done < half {
             let this_pass = pass.min(half - done);
@@ -174,24 +173,15 @@ pub fn reference_receiver_irradiance(
         }
     }
     progress.finish();
-    let scale = 1.0 / half as f64;
-    let to_rgb = |values: [f64; 3]| Rgb::new(values[0] as f32, values[1] as f32, values[2] as f32);
     let [first, second] = &halves;
+    let (mean, standard_error) = first
+        .iter()
+        .zip(second)
+        .map(|(&a, &b)| halves_estimate(a, b, half))
+        .unzip();
     ReferenceLightmap {
-        mean: (0..count)
-            .map(|i| {
-                to_rgb(std::array::from_fn(|c| {
-                    0.5 * (first[i][c] + second[i][c]) * scale
-                }))
-            })
-            .collect(),
-        standard_error: (0..count)
-            .map(|i| {
-                to_rgb(std::array::from_fn(|c| {
-                    0.5 * (first[i][c] - second[i][c]).abs() * scale
-                }))
-            })
-            .collect(),
+        mean,
+        standard_error,
     }
 }
 

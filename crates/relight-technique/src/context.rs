@@ -44,6 +44,12 @@ impl SceneContext {
         })
     }
 
+    /// What a bake made for this scene and lightmap records, and is checked
+    /// against when loaded.
+    pub fn fingerprint(&self) -> u64 {
+        crate::scene_fingerprint(&self.scene, &self.atlas)
+    }
+
     /// The shared direct-light service over this scene.
     pub fn direct(&self) -> DirectLight<'_> {
         DirectLight::new(&self.scene, &self.bvh, &self.emitters, self.settings.direct)

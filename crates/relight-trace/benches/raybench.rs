@@ -23,31 +23,29 @@ extern "C" {
     fn clock_gettime(clock: i32, time: *mut Timespec) -> i32;
 }
 
-/// CPU time of the calling thread (Linux CLOCK_THREAD_CPUTIME_ID) in seconds.
+/// Seconds on a Linux CPU-time clock.
 #[cfg(all(target_os = "linux", target_pointer_width = "64"))]
-fn thread_cpu_seconds() -> f64 {
-    const CLOCK_THREAD_CPUTIME_ID: i32 = 3;
+fn clock_seconds(clock: i32) -> f64 {
     let mut time = Timespec {
         seconds: 0,
         nanoseconds: 0,
     };
     // SAFETY: clock_gettime only writes the struct it is given.
-    unsafe { clock_gettime(CLOCK_THREAD_CPUTIME_ID, &mut time) };
+    unsafe { clock_gettime(clock, &mut time) };
     time.seconds as f64 + time.nanoseconds as f64 * 1e-9
 }
 
-/// CPU time of the whole process (all threads) in seconds: the work a
-/// parallel build does, comparable under load.
+/// CPU time of the calling thread (Linux CLOCK_THREAD_CPUTIME_ID) in seconds.
+#[cfg(all(target_os = "linux", target_pointer_width = "64"))]
+fn thread_cpu_seconds() -> f64 {
+    clock_seconds(3)
+}
+
+/// CPU time of the whole process (all threads, CLOCK_PROCESS_CPUTIME_ID) in
+/// seconds: the work a parallel build does, comparable under load.
 #[cfg(all(target_os = "linux", target_pointer_width = "64"))]
 fn process_cpu_seconds() -> f64 {
-    const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
-    let mut time = Timespec {
-        seconds: 0,
-        nanoseconds: 0,
-    };
-    // SAFETY: clock_gettime only writes the struct it is given.
-    unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut time) };
-    time.seconds as f64 + time.nanoseconds as f64 * 1e-9
+    clock_seconds(2)
 }
 
 #[cfg(not(all(target_os = "linux", target_pointer_width = "64")))]

@@ -16,7 +16,9 @@ use crate::bvh::{Bvh, Ray};
 use crate::direct::DirectLight;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
-use relight_core::sampling::{cosine_hemisphere_around, stratified_square, Pcg32, SampleStream};
+use relight_core::sampling::{
+    cosine_hemisphere_around, stratification_offset, stratified_square, Pcg32, SampleStream,
+};
 use relight_core::Rgb;
 use relight_scene::{Light, Scene};
 
@@ -37,6 +39,35 @@ pub struct PathSettings {
     /// Environment rays per path vertex, likewise.
     pub environment_samples: u32,
     pub seed: u64,
+}
+
+impl PathSettings {
+    /// The settings of one of two independent halves of an estimate: the
+    /// same except for a decorrelated seed.
+    pub fn half(self, part: usize) -> Self {
+        Self {
+            seed: self.seed ^ (part as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+            ..self
+        }
+    }
+}
+
+/// Mean and standard error from the sums of two independent halves of
+/// `samples_per_half` samples each. Stratified samples break the iid
+/// variance formula, so the error is |A - B| / 2 of the two half means.
+pub fn halves_estimate(first: [f64; 3], second: [f64; 3], samples_per_half: u32) -> (Rgb, Rgb) {
+    let scale = 0.5 / samples_per_half.max(1) as f64;
+    let to_rgb = |values: [f64; 3]| {
+        Rgb::new(
+            (values[0] * scale) as f32,
+            (values[1] * scale) as f32,
+            (values[2] * scale) as f32,
+        )
+    };
+    (
+        to_rgb(std::array::from_fn(|c| first[c] + second[c])),
+        to_rgb(std::array::from_fn(|c| (first[c] - second[c]).abs())),
+    )
 }
 
 impl Default for PathSettings {
@@ -263,8 +294,7 @@ impl<'a> PathTracer<'a> {
                 for (within, sum) in out.iter_mut().enumerate() {
                     let index = chunk * POINTS_PER_TASK + within;
                     // One stratification shift per point, shared by its samples.
-                    let offset =
-                        SampleStream::new(self.settings.seed, index as u64, u64::MAX).next_vec2();
+                    let offset = stratification_offset(self.settings.seed, index as u64);
                     for sample in first_sample..first_sample + samples {
                         let key = ((index as u64) << 20) ^ sample as u64;
                         let mut rng =

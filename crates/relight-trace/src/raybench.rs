@@ -63,19 +63,6 @@ pub struct RaySets {
     pub shadow: Vec<Ray>,
 }
 
-impl RaySets {
-    /// The diffuse rays as occlusion queries to infinity.
-    pub fn diffuse_occlusion(&self) -> Vec<Ray> {
-        self.diffuse
-            .iter()
-            .map(|ray| Ray {
-                t_max: f32::INFINITY,
-                ..*ray
-            })
-            .collect()
-    }
-}
-
 fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
     values[values.len() / 2]
@@ -133,6 +120,17 @@ fn morton_code(cell: [u32; 3]) -> u32 {
 }
 
 impl RaySets {
+    /// The diffuse rays as occlusion queries to infinity.
+    pub fn diffuse_occlusion(&self) -> Vec<Ray> {
+        self.diffuse
+            .iter()
+            .map(|ray| Ray {
+                t_max: f32::INFINITY,
+                ..*ray
+            })
+            .collect()
+    }
+
     pub fn generate(
         positions: &[Vec3],
         triangles: &[[u32; 3]],

@@ -156,6 +156,12 @@ impl BinMapping {
         let position = (centroid - self.origin) * self.scale;
         position.to_array().map(bin_index)
     }
+
+    /// `bins(centroid)[axis]`, for one axis: the same operations per lane.
+    #[inline]
+    fn bin(&self, centroid: Vec3A, axis: usize) -> usize {
+        bin_index((centroid[axis] - self.origin[axis]) * self.scale[axis])
+    }
 }
 
 /// Bin of a scaled centroid coordinate, clamped to the bins. Converts
@@ -386,17 +392,13 @@ fn partition(
     axis: usize,
     split: usize,
 ) -> (usize, Aabb, Aabb) {
-    let origin = mapping.origin[axis];
-    let scale = mapping.scale[axis];
     let mut left_centroids = Aabb::EMPTY;
     let mut right_centroids = Aabb::EMPTY;
     let mut left = 0;
     let mut right = references.len();
     while left < right {
         let centroid = primitives[references[left] as usize].centroid;
-        // The same arithmetic as `BinMapping::bins` on this axis.
-        let bin = bin_index((centroid[axis] - origin) * scale);
-        if bin < split {
+        if mapping.bin(centroid, axis) < split {
             left_centroids = left_centroids.grow_point(centroid);
             left += 1;
         } else {
