@@ -57,7 +57,7 @@
 //!   room. relight ranks by weight times the pane's total luminance, the
 //!   light a cluster adds (`selection = "weight"` restores the paper's
 //!   ranking). At K = 32 (uncompressed) this lowers the Cornell box's
-//!   lightmap error from 55.3 % to 47.9 % and the point-lit Cornell box's
+//!   lightmap error from 54.0 % to 47.8 % and the point-lit Cornell box's
 //!   from 31.3 % to 29.2 %.
 //! - Entry points face their triangle's front side; light reaching only the
 //!   back of thin two-sided geometry does not enter the panes.
