@@ -4,7 +4,12 @@
 use relight_technique::{DirectKind, ReferenceKind, TechniqueKind};
 
 pub fn kinds() -> &'static [&'static dyn TechniqueKind] {
-    &[&DirectKind, &ReferenceKind, &relight_prm::PrmKind]
+    &[
+        &DirectKind,
+        &ReferenceKind,
+        &relight_prm::PrmKind,
+        &relight_lightskin::LightSkinKind,
+    ]
 }
 
 pub fn find(name: &str) -> anyhow::Result<&'static dyn TechniqueKind> {

@@ -411,23 +411,54 @@ pub(crate) struct LoadedMesh {
 /// Reads a scene file, its mesh, materials and textures.
 pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
     let file = parse_scene_file(path)?;
-    let extension = file
-        .mesh
+    let loaded = load_mesh_file(&file.mesh)?;
+    finish_scene(file, loaded)
+}
+
+fn load_mesh_file(path: &Path) -> Result<LoadedMesh, SceneError> {
+    let extension = path
         .extension()
         .and_then(|extension| extension.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
-    let loaded = match extension.as_str() {
-        "obj" => obj_loader::load_obj(&file.mesh)?,
-        "gltf" | "glb" => gltf_loader::load_gltf(&file.mesh)?,
-        _ => {
-            return Err(SceneError::UnsupportedFormat {
-                path: file.mesh.clone(),
-                extension,
-            })
+    match extension.as_str() {
+        "obj" => obj_loader::load_obj(path),
+        "gltf" | "glb" => gltf_loader::load_gltf(path),
+        _ => Err(SceneError::UnsupportedFormat {
+            path: path.to_path_buf(),
+            extension,
+        }),
+    }
+}
+
+/// A mesh file on its own (OBJ or glTF) with its materials, textures
+/// folded into each material's average colour, degenerate triangles
+/// dropped: the form techniques use for extra, moving meshes.
+pub fn load_mesh(path: &Path) -> Result<(Mesh, Vec<Material>), SceneError> {
+    let LoadedMesh {
+        mut mesh,
+        mut materials,
+        textures,
+        ..
+    } = load_mesh_file(path)?;
+    if let Some(position) = mesh.positions.iter().position(|p| !p.is_finite()) {
+        return Err(SceneError::Invalid {
+            path: path.to_path_buf(),
+            message: format!("vertex {position} has a non-finite coordinate: fix or remove it"),
+        });
+    }
+    drop_degenerate_triangles(&mut mesh);
+    if mesh.triangles.is_empty() {
+        return Err(SceneError::Empty {
+            path: path.to_path_buf(),
+        });
+    }
+    for material in &mut materials {
+        if let Some(texture) = material.albedo_texture.take() {
+            material.albedo *= textures[texture as usize].average();
         }
-    };
-    finish_scene(file, loaded)
+    }
+    Ok((mesh, materials))
 }
 
 fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError> {

@@ -1,0 +1,72 @@
+//! What the light sees: the static scene's BVH and, when the scene has
+//! moving meshes, this frame's BVH over them; the nearer hit wins.
+
+use crate::dynamic::DynamicWorld;
+use glam::Vec3;
+use relight_core::Rgb;
+use relight_scene::Scene;
+use relight_trace::{Bvh, Ray};
+
+/// The first surface a ray meets.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceHit {
+    pub position: Vec3,
+    /// Geometric normal of the hit triangle's front face.
+    pub normal: Vec3,
+    pub albedo: Rgb,
+    pub distance: f32,
+}
+
+pub struct Geometry<'a> {
+    pub scene: &'a Scene,
+    pub bvh: &'a Bvh,
+    pub ray_epsilon: f32,
+    pub dynamic: Option<&'a DynamicWorld>,
+}
+
+impl Geometry<'_> {
+    /// First hit along a unit `direction`.
+    pub fn first_hit(&self, origin: Vec3, direction: Vec3) -> Option<SurfaceHit> {
+        let mut ray = Ray {
+            origin,
+            direction,
+            t_max: f32::INFINITY,
+        };
+        let mut nearest = self.bvh.intersect(&ray).map(|hit| {
+            let triangle = hit.triangle as usize;
+            SurfaceHit {
+                position: origin + direction * hit.t,
+                normal: self.scene.mesh.geometric_normal(triangle),
+                albedo: self.scene.albedo_at(triangle, hit.barycentric),
+                distance: hit.t,
+            }
+        });
+        if let Some(world) = self.dynamic {
+            if let Some(hit) = nearest {
+                ray.t_max = hit.distance;
+            }
+            if let Some(hit) = world.bvh.intersect(&ray) {
+                nearest = Some(SurfaceHit {
+                    position: origin + direction * hit.t,
+                    normal: world.triangle_normals[hit.triangle as usize],
+                    albedo: world.triangle_albedos[hit.triangle as usize],
+                    distance: hit.t,
+                });
+            }
+        }
+        nearest
+    }
+
+    /// Centre and radius of a sphere around everything that can be lit.
+    pub fn bounding_sphere(&self) -> (Vec3, f32) {
+        let (mut low, mut high) = self.bvh.bounds();
+        if let Some(world) = self.dynamic {
+            if !world.triangle_normals.is_empty() {
+                let (dynamic_low, dynamic_high) = world.bvh.bounds();
+                low = low.min(dynamic_low);
+                high = high.max(dynamic_high);
+            }
+        }
+        ((low + high) * 0.5, ((high - low) * 0.5).length().max(1e-3))
+    }
+}

@@ -1,0 +1,1064 @@
+//! LightSkin (Lensing and Broll, "LightSkin: Real-Time Global Illumination
+//! for Virtual and Mixed Reality"): one-bounce diffuse and glossy indirect
+//! light from virtual area lights, gathered at sparse model-space points
+//! and interpolated, with no precomputation.
+//!
+//! Data flow, every frame:
+//! 1. Reflective shadow maps, by ray casting from each light (and from each
+//!    emissive triangle): every texel's first hit is a virtual area light
+//!    (VAL), a Lambertian disc re-emitting the flux it received times the
+//!    albedo. Points of a captured point cloud (PLY) are added as VALs.
+//! 2. Gathering (equations 3 to 7) at the sparse points, which are spread
+//!    over every mesh when it is loaded and fixed to it: irradiance and the
+//!    averaged light position, diffuse and (for glossy materials) glossy.
+//! 3. Occlusion (section 3.3, optional): the other sparse points as discs
+//!    dim each point's light.
+//! 4. Renormalisation (equations 8 to 11): each point's averaged virtual
+//!    point light gets the power that reproduces its gathered irradiance.
+//! 5. Interpolation (equations 12 and 13) to the lightmap texels of the
+//!    static scene and the vertices of moving meshes, from the eight
+//!    nearest sparse points fixed when the mesh was loaded.
+//! 6. Shading (equation 10): each pixel evaluates the interpolated light
+//!    at its own position and normal (lightmap texels bilinearly, moving
+//!    meshes barycentrically), diffuse and glossy.
+//!
+//! Moving meshes come from the scene file's `[[dynamic]]` tables (see
+//! [`dynamic`]); they block and reflect light in the maps and receive
+//! indirect light through their own sparse points.
+//!
+//! | parameter | default | meaning |
+//! |---|---|---|
+//! | `rsm_resolution` | 48 | texels per side of each reflective shadow map (8 to 512; a point light has six) |
+//! | `emissive_resolution` | 64 | texels per side shared by all emissive triangles' maps |
+//! | `points` | 4096 | sparse points on the static scene |
+//! | `dynamic_points` | 256 | sparse points on each moving mesh (the paper's Figure 5) |
+//! | `occlusion` | true | section 3.3's disc occlusion |
+//! | `interpolation` | true | false: every VAL applied to every receiver and pixel (the paper's brute-force comparison) |
+//! | `epsilon` | 1e-3 | equation 7's epsilon, relative to an average VAL seen across the scene's diagonal |
+//! | `specular` | 0 | specular reflectance of materials with a Phong exponent above 1 (0: diffuse only) |
+//! | `block` | 512 | VALs per cache block (the paper's K_cache) |
+//! | `point_cloud` | "" | PLY file of captured points added as VALs (section 5) |
+//! | `point_cloud_scale` | 1 | radiance (W/m^2/sr) of a point whose colour is 1 |
+//! | `seed` | 1 | rotation of the sparse points' Halton candidates |
+//!
+//! The scene file may set any of these under `[lightskin]`; `--set` wins.
+//!
+//! Choices and limits:
+//! - One bounce: VALs are where direct light lands; their light reaching a
+//!   receiver is the first indirect bounce, and nothing bounces further.
+//! - The disc form factor of equation 3 is exact on the disc's axis and an
+//!   approximation elsewhere (tested against numerical integration).
+//! - A VAL's disc has the surface area its texel covers (perpendicular
+//!   footprint over the cosine, at most five times the footprint), not the
+//!   paper's area facing the light, which overstates exitance on tilted
+//!   surfaces.
+//! - Averaged light positions are weighted by each VAL's luminance at the
+//!   point (see [`gather`]), not by geometry alone.
+//! - Texels, not mesh vertices, are the interpolation targets of static
+//!   geometry: the paper notes its interpolation fails when the mesh is
+//!   coarser than the points (a wall of two triangles), and lightmap texels
+//!   are a tessellation finer than the points everywhere. Moving meshes
+//!   interpolate at their vertices, as in the paper.
+//! - Glossy reflection is evaluated for the scene camera's eye, which relight
+//!   keeps fixed; the glossy lobe uses c = specular / (2 pi), so c_k =
+//!   specular (k + 1) / (2 pi) is the normalised Phong lobe.
+
+pub mod dynamic;
+pub mod gather;
+mod geometry;
+pub mod occlusion;
+pub mod ply;
+pub mod points;
+pub mod vals;
+
+use dynamic::{DynamicMesh, DynamicWorld};
+use gather::Sums;
+use geometry::Geometry;
+use glam::Vec3;
+use points::{Anchor, Interpolation, TriangleSet, NEIGHBOURS};
+use rayon::prelude::*;
+use relight_core::Rgb;
+use relight_scene::Scene;
+use relight_technique::{
+    parse_params, Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint,
+    Technique, TechniqueError, TechniqueKind,
+};
+use serde::{Deserialize, Serialize};
+use std::f32::consts::PI;
+use std::path::PathBuf;
+use std::sync::Arc;
+use vals::{RsmSettings, Val, Vals};
+
+/// What can go wrong setting LightSkin up, each saying where and what to do.
+#[derive(Debug, thiserror::Error)]
+pub enum LightSkinError {
+    #[error("{path}: {message}")]
+    Scene { path: PathBuf, message: String },
+    #[error("{path}: {message}")]
+    PointCloud { path: PathBuf, message: String },
+}
+
+impl From<LightSkinError> for TechniqueError {
+    fn from(error: LightSkinError) -> Self {
+        TechniqueError::Other(error.to_string())
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LightSkinParams {
+    pub rsm_resolution: u32,
+    pub emissive_resolution: u32,
+    pub points: u32,
+    pub dynamic_points: u32,
+    pub occlusion: bool,
+    pub interpolation: bool,
+    pub epsilon: f32,
+    pub specular: f32,
+    pub block: u32,
+    pub point_cloud: String,
+    pub point_cloud_scale: f32,
+    pub seed: u64,
+}
+
+impl Default for LightSkinParams {
+    fn default() -> Self {
+        Self {
+            rsm_resolution: 48,
+            emissive_resolution: 64,
+            points: 4096,
+            dynamic_points: 256,
+            occlusion: true,
+            interpolation: true,
+            epsilon: 1e-3,
+            specular: 0.0,
+            block: 512,
+            point_cloud: String::new(),
+            point_cloud_scale: 1.0,
+            seed: 1,
+        }
+    }
+}
+
+impl LightSkinParams {
+    fn validate(&self) -> Result<(), TechniqueError> {
+        let fail = |message: String| {
+            Err(TechniqueError::Params(relight_technique::ParamError {
+                technique: "lightskin",
+                message,
+            }))
+        };
+        if !(8..=512).contains(&self.rsm_resolution) {
+            return fail(format!(
+                "rsm_resolution must be between 8 and 512, got {}",
+                self.rsm_resolution
+            ));
+        }
+        if self.emissive_resolution > 2048 {
+            return fail(format!(
+                "emissive_resolution must be at most 2048, got {}",
+                self.emissive_resolution
+            ));
+        }
+        if !(1..=1_000_000).contains(&self.points) {
+            return fail(format!(
+                "points must be between 1 and 1000000, got {}",
+                self.points
+            ));
+        }
+        if self.dynamic_points > 1_000_000 {
+            return fail(format!(
+                "dynamic_points must be at most 1000000, got {}",
+                self.dynamic_points
+            ));
+        }
+        if !(self.epsilon.is_finite() && self.epsilon > 0.0) {
+            return fail(format!("epsilon must be positive, got {}", self.epsilon));
+        }
+        if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {
+            return fail(format!(
+                "specular must be between 0 and 1, got {}",
+                self.specular
+            ));
+        }
+        if self.block < 8 || !self.block.is_multiple_of(8) {
+            return fail(format!(
+                "block must be a positive multiple of 8, got {}",
+                self.block
+            ));
+        }
+        if !(self.point_cloud_scale.is_finite() && self.point_cloud_scale >= 0.0) {
+            return fail(format!(
+                "point_cloud_scale must be a non-negative number, got {}",
+                self.point_cloud_scale
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The `[lightskin]` table of the scene file as `key=value` pairs, followed
+/// by the command line's, so that the command line wins.
+fn scene_and_command_line_params(
+    scene: &Scene,
+    params: &[(String, String)],
+) -> Vec<(String, String)> {
+    let mut pairs = Vec::new();
+    if let Some(toml::Value::Table(table)) = scene.technique_sections.get("lightskin") {
+        for (key, value) in table {
+            pairs.push((key.clone(), value.to_string()));
+        }
+    }
+    pairs.extend_from_slice(params);
+    pairs
+}
+
+pub struct LightSkinKind;
+
+impl TechniqueKind for LightSkinKind {
+    fn name(&self) -> &'static str {
+        "lightskin"
+    }
+    fn summary(&self) -> &'static str {
+        "LightSkin: RSM virtual area lights gathered at sparse model-space points, interpolated; no bake, moving meshes"
+    }
+    fn needs_bake(&self) -> bool {
+        false
+    }
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        _bake: Option<&[u8]>,
+        params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError> {
+        let pairs = scene_and_command_line_params(&context.scene, params);
+        let params = parse_params("lightskin", &LightSkinParams::default(), &pairs)?;
+        params.validate()?;
+        Ok(Box::new(LightSkin::new(context, params)?))
+    }
+}
+
+/// Averaged virtual point lights of a set of receivers: power (W/pi-like,
+/// the L'' of equation 11) and position, struct of arrays.
+#[derive(Clone, Debug, Default)]
+struct Vpls {
+    power: Vec<Rgb>,
+    position: Vec<Vec3>,
+}
+
+impl Vpls {
+    fn zeroed(count: usize) -> Self {
+        Self {
+            power: vec![Rgb::ZERO; count],
+            position: vec![Vec3::ZERO; count],
+        }
+    }
+
+    fn memory_bytes(&self) -> usize {
+        (self.power.len() + self.position.len()) * 12
+    }
+
+    /// Equation 13 for every target of `interpolation`.
+    fn interpolate_from(&mut self, sources: &Vpls, interpolation: &Interpolation, first: usize) {
+        self.power
+            .par_iter_mut()
+            .zip(self.position.par_iter_mut())
+            .enumerate()
+            .for_each(|(target, (power, position))| {
+                let mut power_sum = Rgb::ZERO;
+                let mut position_sum = Vec3::ZERO;
+                let neighbours = &interpolation.neighbours[target];
+                let weights = &interpolation.weights[target];
+                for slot in 0..NEIGHBOURS {
+                    let source = first + neighbours[slot] as usize;
+                    power_sum += sources.power[source] * weights[slot];
+                    position_sum += sources.position[source] * weights[slot];
+                }
+                *power = power_sum;
+                *position = position_sum;
+            });
+    }
+}
+
+/// Equation 10, diffuse term: irradiance at `position` with `normal` from a
+/// point light of power `power` (L''_d) at `light`: L cos(theta) / d^2.
+#[inline]
+pub fn phong_diffuse(power: Rgb, light: Vec3, position: Vec3, normal: Vec3) -> Rgb {
+    let to_light = light - position;
+    let distance_sq = to_light.length_squared().max(1e-12);
+    let cos = normal.dot(to_light);
+    if cos <= 0.0 {
+        return Rgb::ZERO;
+    }
+    power * (cos / (distance_sq * distance_sq.sqrt()))
+}
+
+/// Equation 10, glossy term without the BRDF factor: L cos^k(gamma) / d^2
+/// with gamma between `reflected` and the direction to the light.
+#[inline]
+pub fn phong_glossy(
+    power: Rgb,
+    light: Vec3,
+    position: Vec3,
+    normal: Vec3,
+    reflected: Vec3,
+    exponent: f32,
+) -> Rgb {
+    let to_light = light - position;
+    let distance_sq = to_light.length_squared().max(1e-12);
+    let direction = to_light / distance_sq.sqrt();
+    let cos_gamma = reflected.dot(direction);
+    if cos_gamma <= 0.0 || normal.dot(direction) <= 0.0 {
+        return Rgb::ZERO;
+    }
+    power * (cos_gamma.powf(exponent) / distance_sq)
+}
+
+/// Smallest cosine equation 11 divides by: an averaged light almost in the
+/// receiver's plane would otherwise get an unbounded power that
+/// interpolation spreads to neighbours.
+const MIN_RENORMALISATION_COSINE: f32 = 0.02;
+
+/// Equation 11: the power that makes [`phong_diffuse`] of the averaged light
+/// at `light` reproduce `irradiance` at the point.
+#[inline]
+pub fn renormalise_diffuse(irradiance: Rgb, light: Vec3, position: Vec3, normal: Vec3) -> Rgb {
+    let to_light = light - position;
+    let distance_sq = to_light.length_squared().max(1e-12);
+    let distance = distance_sq.sqrt();
+    let cos = (normal.dot(to_light) / distance).max(MIN_RENORMALISATION_COSINE);
+    irradiance * (distance_sq / cos)
+}
+
+/// Sparse points of the static scene and of the moving meshes, in world
+/// space for the current frame, struct of arrays. Static points come first.
+#[derive(Clone, Debug, Default)]
+struct SparsePoints {
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    /// Disc radius squared (occluders): r^2 = (area per point) / pi.
+    radius_sq: Vec<f32>,
+    /// Phong exponent; 0 where the point has no glossy lobe.
+    glossy_exponent: Vec<f32>,
+    static_count: usize,
+    /// Per moving mesh: its anchors (mesh space) and first point index.
+    dynamic_anchors: Vec<(usize, Vec<Anchor>)>,
+}
+
+/// A running LightSkin for one scene.
+pub struct LightSkin {
+    context: Arc<SceneContext>,
+    params: LightSkinParams,
+    dynamic_meshes: Vec<DynamicMesh>,
+    dynamic_world: Option<DynamicWorld>,
+    point_cloud: Vec<Val>,
+    points: SparsePoints,
+    vals: Vals,
+    sums: Vec<Sums>,
+    glossy_sums: Vec<Sums>,
+    /// Light sphere radius per point, for occlusion.
+    light_radius: Vec<f32>,
+    occlusion: Vec<f32>,
+    point_diffuse: Vpls,
+    point_glossy: Vpls,
+    texel_interpolation: Interpolation,
+    texel_diffuse: Vpls,
+    texel_glossy: Vpls,
+    /// Dilated lightmaps of the texels' interpolated lights.
+    diffuse_power_map: Vec<Rgb>,
+    diffuse_position_map: Vec<Rgb>,
+    glossy_power_map: Vec<Rgb>,
+    glossy_position_map: Vec<Rgb>,
+    /// Per moving-mesh vertex (all meshes in order): neighbours among the
+    /// mesh's own points (global indices), mesh-space normals, and lights.
+    vertex_interpolation: Interpolation,
+    vertex_normals_local: Vec<Vec3>,
+    vertex_diffuse: Vpls,
+    vertex_glossy: Vpls,
+    receiver_irradiance: Vec<Rgb>,
+    eye: Vec3,
+    timings: StageTimings,
+}
+
+impl LightSkin {
+    pub fn new(
+        context: Arc<SceneContext>,
+        params: LightSkinParams,
+    ) -> Result<Self, TechniqueError> {
+        let scene = &context.scene;
+        let dynamic_meshes = dynamic::load_dynamic_meshes(scene)?;
+        let point_cloud = if params.point_cloud.is_empty() {
+            Vec::new()
+        } else {
+            let folder = scene.source.parent().unwrap_or(std::path::Path::new("."));
+            let path = folder.join(&params.point_cloud);
+            ply::read_point_cloud_vals(&path, params.point_cloud_scale)?
+        };
+
+        // Static sparse points, fixed to the static mesh.
+        let static_set = TriangleSet {
+            positions: &scene.mesh.positions,
+            triangles: &scene.mesh.triangles,
+        };
+        let static_anchors =
+            points::spread_points(&static_set, params.points as usize, params.seed);
+        let static_area = static_set.total_area() as f32;
+        let mut sparse = SparsePoints::default();
+        let static_radius_sq = static_area / static_anchors.len().max(1) as f32 / PI;
+        let glossy_exponent = |material: &relight_scene::Material| {
+            if params.specular > 0.0 && material.phong_exponent > 1.0 {
+                material.phong_exponent
+            } else {
+                0.0
+            }
+        };
+        for anchor in &static_anchors {
+            sparse.positions.push(static_set.point(*anchor));
+            sparse.normals.push(static_set.normal(anchor.triangle));
+            sparse.radius_sq.push(static_radius_sq);
+            sparse
+                .glossy_exponent
+                .push(glossy_exponent(scene.material_of(anchor.triangle as usize)));
+        }
+        sparse.static_count = sparse.positions.len();
+        let spacing = (static_area / sparse.static_count.max(1) as f32).sqrt();
+        let static_normals = sparse.normals.clone();
+        let texel_interpolation = Interpolation::build(
+            &context.atlas.receivers.positions,
+            &context.atlas.receivers.normals,
+            &sparse.positions,
+            &static_normals,
+            spacing,
+        );
+
+        // Moving meshes: points and vertex neighbour lists in mesh space.
+        let mut vertex_interpolation = Interpolation::default();
+        let mut vertex_normals_local = Vec::new();
+        for mesh in &dynamic_meshes {
+            let set = TriangleSet {
+                positions: &mesh.mesh.positions,
+                triangles: &mesh.mesh.triangles,
+            };
+            let anchors = points::spread_points(&set, params.dynamic_points as usize, params.seed);
+            let first = sparse.positions.len();
+            let area = set.total_area() as f32;
+            let radius_sq = area / anchors.len().max(1) as f32 / PI;
+            let local_positions: Vec<Vec3> = anchors.iter().map(|&a| set.point(a)).collect();
+            let local_normals: Vec<Vec3> = anchors.iter().map(|a| set.normal(a.triangle)).collect();
+            for (position, normal) in local_positions.iter().zip(&local_normals) {
+                sparse.positions.push(*position);
+                sparse.normals.push(*normal);
+                sparse.radius_sq.push(radius_sq);
+                sparse.glossy_exponent.push(0.0);
+            }
+            let normals = vertex_normals(&set);
+            let mut lists = Interpolation::build(
+                &mesh.mesh.positions,
+                &normals,
+                &local_positions,
+                &local_normals,
+                (area / anchors.len().max(1) as f32).sqrt(),
+            );
+            for neighbours in &mut lists.neighbours {
+                for index in neighbours.iter_mut() {
+                    *index += first as u32;
+                }
+            }
+            vertex_interpolation.neighbours.extend(lists.neighbours);
+            vertex_interpolation.weights.extend(lists.weights);
+            vertex_normals_local.extend(normals);
+            sparse.dynamic_anchors.push((first, anchors));
+        }
+
+        let point_count = sparse.positions.len();
+        let receiver_count = context.atlas.receivers.len();
+        let map_size = (context.atlas.width * context.atlas.height) as usize;
+        let vertex_count = vertex_normals_local.len();
+        let glossy = params.specular > 0.0;
+        let eye = scene.camera.eye;
+        Ok(Self {
+            dynamic_world: None,
+            point_cloud,
+            sums: vec![Sums::default(); point_count],
+            glossy_sums: vec![Sums::default(); if glossy { point_count } else { 0 }],
+            light_radius: vec![0.0; point_count],
+            occlusion: vec![0.0; point_count],
+            point_diffuse: Vpls::zeroed(point_count),
+            point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
+            texel_interpolation,
+            texel_diffuse: Vpls::zeroed(receiver_count),
+            texel_glossy: Vpls::zeroed(if glossy { receiver_count } else { 0 }),
+            diffuse_power_map: vec![Rgb::ZERO; map_size],
+            diffuse_position_map: vec![Rgb::ZERO; map_size],
+            glossy_power_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
+            glossy_position_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
+            vertex_interpolation,
+            vertex_normals_local,
+            vertex_diffuse: Vpls::zeroed(vertex_count),
+            vertex_glossy: Vpls::zeroed(if glossy { vertex_count } else { 0 }),
+            receiver_irradiance: vec![Rgb::ZERO; receiver_count],
+            points: sparse,
+            vals: Vals::default(),
+            dynamic_meshes,
+            eye,
+            params,
+            context,
+            timings: StageTimings::default(),
+        })
+    }
+
+    /// The VALs of the last update.
+    pub fn vals(&self) -> &Vals {
+        &self.vals
+    }
+
+    /// Sparse point positions of the last update (static ones first).
+    pub fn sparse_points(&self) -> &[Vec3] {
+        &self.points.positions
+    }
+
+    /// Irradiance each sparse point gathered in the last update (after
+    /// occlusion), and its averaged diffuse light (l'_d, L''_d).
+    pub fn sparse_point_light(&self, index: usize) -> (Rgb, Vec3, Rgb) {
+        (
+            self.sums[index].irradiance() * (1.0 - self.occlusion[index]),
+            self.point_diffuse.position[index],
+            self.point_diffuse.power[index],
+        )
+    }
+
+    pub fn sparse_point_normal(&self, index: usize) -> Vec3 {
+        self.points.normals[index]
+    }
+
+    /// The moving meshes placed for the last update, if the scene has any.
+    pub fn dynamic_world(&self) -> Option<&DynamicWorld> {
+        self.dynamic_world.as_ref()
+    }
+
+    fn geometry(&self) -> Geometry<'_> {
+        Geometry {
+            scene: &self.context.scene,
+            bvh: &self.context.bvh,
+            ray_epsilon: relight_trace::direct::ray_epsilon_for(&self.context.bvh),
+            dynamic: self.dynamic_world.as_ref(),
+        }
+    }
+
+    /// Equation 6 summed over every VAL at one point: the brute-force answer.
+    pub fn brute_force_irradiance(&self, position: Vec3, normal: Vec3) -> Rgb {
+        let mut sums = Sums::default();
+        gather::accumulate::<false>(
+            &self.vals,
+            0,
+            self.vals.padded_len(),
+            position,
+            normal,
+            &mut sums,
+        );
+        sums.irradiance()
+    }
+
+    fn place_dynamic_points(&mut self, world: &DynamicWorld) {
+        for (mesh_index, (first, anchors)) in self.points.dynamic_anchors.iter().enumerate() {
+            let pose = world.poses[mesh_index];
+            let mesh = &self.dynamic_meshes[mesh_index].mesh;
+            let set = TriangleSet {
+                positions: &mesh.positions,
+                triangles: &mesh.triangles,
+            };
+            for (offset, anchor) in anchors.iter().enumerate() {
+                self.points.positions[first + offset] = pose.transform_point3(set.point(*anchor));
+                self.points.normals[first + offset] = pose
+                    .transform_vector3(set.normal(anchor.triangle))
+                    .normalize_or_zero();
+            }
+        }
+    }
+
+    /// The epsilon weight of equation 7 per VAL: `epsilon` times the weight
+    /// of an average VAL facing a receiver across the scene's diagonal.
+    fn epsilon_weight(&self) -> f64 {
+        if self.vals.count == 0 {
+            return 0.0;
+        }
+        let (low, high) = self.context.bvh.bounds();
+        let diagonal_sq = (high - low).length_squared().max(1e-12) as f64;
+        let mean_luminance: f64 = self.vals.power_luminance[..self.vals.count]
+            .iter()
+            .map(|&l| l as f64)
+            .sum::<f64>()
+            / self.vals.count as f64;
+        self.params.epsilon as f64 * mean_luminance / diagonal_sq
+    }
+
+    fn gather_points(&mut self) {
+        let vals = &self.vals;
+        let block = self.params.block as usize;
+        let spread = self.params.occlusion;
+        let positions = &self.points.positions;
+        let normals = &self.points.normals;
+        const GROUP: usize = 16;
+        self.sums
+            .par_chunks_mut(GROUP)
+            .enumerate()
+            .for_each(|(group, sums)| {
+                let first = group * GROUP;
+                sums.fill(Sums::default());
+                let mut start = 0;
+                while start < vals.padded_len() {
+                    let end = (start + block).min(vals.padded_len());
+                    for (offset, point_sums) in sums.iter_mut().enumerate() {
+                        let index = first + offset;
+                        if spread {
+                            gather::accumulate::<true>(
+                                vals,
+                                start,
+                                end,
+                                positions[index],
+                                normals[index],
+                                point_sums,
+                            );
+                        } else {
+                            gather::accumulate::<false>(
+                                vals,
+                                start,
+                                end,
+                                positions[index],
+                                normals[index],
+                                point_sums,
+                            );
+                        }
+                    }
+                    start = end;
+                }
+            });
+        if !self.glossy_sums.is_empty() {
+            let eye = self.eye;
+            let exponents = &self.points.glossy_exponent;
+            self.glossy_sums
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(index, sums)| {
+                    *sums = Sums::default();
+                    if exponents[index] > 0.0 {
+                        let position = positions[index];
+                        let normal = normals[index];
+                        let reflected = reflect_view(eye, position, normal);
+                        gather::accumulate_glossy(
+                            vals,
+                            position,
+                            normal,
+                            reflected,
+                            exponents[index],
+                            sums,
+                        );
+                    }
+                });
+        }
+    }
+
+    /// Averaged light position and, when wanted, the light sphere radius
+    /// (largest side of the box l'_d +- sigma) from a point's sums.
+    fn averaged_light(sums: &Sums, epsilon_weight: f64, vals: &Vals) -> (Vec3, f32) {
+        let count = vals.count as f64;
+        let weight = sums.weight as f64 + epsilon_weight * count;
+        if weight <= 0.0 {
+            return (Vec3::ZERO, 0.0);
+        }
+        let mut centre = [0.0f64; 3];
+        let mut largest_sigma = 0.0f64;
+        for (axis, coordinate) in centre.iter_mut().enumerate() {
+            let mean = (sums.weighted_position[axis] as f64
+                + epsilon_weight * vals.position_sum[axis])
+                / weight;
+            let square = (sums.weighted_square[axis] as f64
+                + epsilon_weight * vals.position_square_sum[axis])
+                / weight;
+            *coordinate = mean;
+            largest_sigma = largest_sigma.max((square - mean * mean).max(0.0).sqrt());
+        }
+        (
+            Vec3::new(centre[0] as f32, centre[1] as f32, centre[2] as f32),
+            (2.0 * largest_sigma) as f32,
+        )
+    }
+
+    fn renormalise_points(&mut self) {
+        let epsilon_weight = self.epsilon_weight();
+        let vals = &self.vals;
+        let positions = &self.points.positions;
+        let normals = &self.points.normals;
+        let sums = &self.sums;
+        let occlusion = &self.occlusion;
+        self.point_diffuse
+            .power
+            .par_iter_mut()
+            .zip(self.point_diffuse.position.par_iter_mut())
+            .enumerate()
+            .for_each(|(index, (power, light))| {
+                let (centre, _) = Self::averaged_light(&sums[index], epsilon_weight, vals);
+                let irradiance = sums[index].irradiance() * (1.0 - occlusion[index]);
+                *light = centre;
+                *power = renormalise_diffuse(irradiance, centre, positions[index], normals[index]);
+            });
+        if !self.glossy_sums.is_empty() {
+            let eye = self.eye;
+            let exponents = &self.points.glossy_exponent;
+            let glossy_sums = &self.glossy_sums;
+            self.point_glossy
+                .power
+                .par_iter_mut()
+                .zip(self.point_glossy.position.par_iter_mut())
+                .enumerate()
+                .for_each(|(index, (power, light))| {
+                    let sums = &glossy_sums[index];
+                    let exponent = exponents[index];
+                    if exponent <= 0.0 || sums.weight <= 0.0 {
+                        *power = Rgb::ZERO;
+                        *light = positions[index] + normals[index];
+                        return;
+                    }
+                    let centre = Vec3::from_array(sums.weighted_position) / sums.weight;
+                    let position = positions[index];
+                    let reflected = reflect_view(eye, position, normals[index]);
+                    // Equation 11, glossy: L'' = L' d^2 / cos^k(gamma).
+                    let to_light = centre - position;
+                    let distance_sq = to_light.length_squared().max(1e-12);
+                    let cos_gamma = (reflected.dot(to_light) / distance_sq.sqrt())
+                        .max(MIN_RENORMALISATION_COSINE);
+                    *light = centre;
+                    *power = sums.irradiance()
+                        * (1.0 - occlusion[index])
+                        * (distance_sq / cos_gamma.powf(exponent));
+                });
+        }
+    }
+
+    fn compute_occlusion(&mut self) {
+        let epsilon_weight = self.epsilon_weight();
+        let vals = &self.vals;
+        let sums = &self.sums;
+        let occluders = occlusion::Occluders {
+            positions: &self.points.positions,
+            normals: &self.points.normals,
+            radius_sq: &self.points.radius_sq,
+        };
+        self.occlusion
+            .par_iter_mut()
+            .zip(self.light_radius.par_iter_mut())
+            .enumerate()
+            .for_each(|(index, (occluded, radius))| {
+                if sums[index].weight <= 0.0 {
+                    *occluded = 0.0;
+                    *radius = 0.0;
+                    return;
+                }
+                let (centre, light_radius) =
+                    Self::averaged_light(&sums[index], epsilon_weight, vals);
+                *radius = light_radius;
+                *occluded = occlusion::occluded_fraction(&occluders, index, centre, light_radius);
+            });
+    }
+
+    fn interpolate(&mut self) {
+        let atlas = &self.context.atlas;
+        self.texel_diffuse
+            .interpolate_from(&self.point_diffuse, &self.texel_interpolation, 0);
+        atlas.scatter_into(&self.texel_diffuse.power, &mut self.diffuse_power_map);
+        atlas.scatter_into(&self.texel_diffuse.position, &mut self.diffuse_position_map);
+        if !self.glossy_sums.is_empty() {
+            self.texel_glossy
+                .interpolate_from(&self.point_glossy, &self.texel_interpolation, 0);
+            atlas.scatter_into(&self.texel_glossy.power, &mut self.glossy_power_map);
+            atlas.scatter_into(&self.texel_glossy.position, &mut self.glossy_position_map);
+        }
+        let receivers = &atlas.receivers;
+        let texel_diffuse = &self.texel_diffuse;
+        self.receiver_irradiance
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(index, irradiance)| {
+                *irradiance = phong_diffuse(
+                    texel_diffuse.power[index],
+                    texel_diffuse.position[index],
+                    receivers.positions[index],
+                    receivers.normals[index],
+                );
+            });
+        if !self.vertex_interpolation.is_empty() {
+            self.vertex_diffuse.interpolate_from(
+                &self.point_diffuse,
+                &self.vertex_interpolation,
+                0,
+            );
+            if !self.glossy_sums.is_empty() {
+                self.vertex_glossy.interpolate_from(
+                    &self.point_glossy,
+                    &self.vertex_interpolation,
+                    0,
+                );
+            }
+        }
+    }
+
+    fn brute_force_receivers(&mut self) {
+        let receivers = &self.context.atlas.receivers;
+        let vals = &self.vals;
+        self.receiver_irradiance
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(index, irradiance)| {
+                let mut sums = Sums::default();
+                gather::accumulate::<false>(
+                    vals,
+                    0,
+                    vals.padded_len(),
+                    receivers.positions[index],
+                    receivers.normals[index],
+                    &mut sums,
+                );
+                *irradiance = sums.irradiance();
+            });
+    }
+
+    /// The interpolated lights at a point of a moving mesh's triangle
+    /// (index into the merged scene, see [`DynamicWorld::merged_into`]).
+    fn dynamic_surface_light(
+        &self,
+        triangle: u32,
+        barycentric: glam::Vec2,
+        position: Vec3,
+        normal: Vec3,
+    ) -> Option<Rgb> {
+        let world = self.dynamic_world.as_ref()?;
+        let static_count = self.context.scene.mesh.triangles.len() as u32;
+        let local = triangle.checked_sub(static_count)?;
+        let [a, b, c] = *world.triangles.get(local as usize)?;
+        let weights = [
+            1.0 - barycentric.x - barycentric.y,
+            barycentric.x,
+            barycentric.y,
+        ];
+        let mut power = Rgb::ZERO;
+        let mut light = Vec3::ZERO;
+        for (vertex, weight) in [a, b, c].into_iter().zip(weights) {
+            power += self.vertex_diffuse.power[vertex as usize] * weight;
+            light += self.vertex_diffuse.position[vertex as usize] * weight;
+        }
+        Some(phong_diffuse(power, light, position, normal))
+    }
+}
+
+/// Ideal reflection of the direction from `eye` to `position` about `normal`.
+fn reflect_view(eye: Vec3, position: Vec3, normal: Vec3) -> Vec3 {
+    let incoming = (position - eye).normalize_or_zero();
+    (incoming - 2.0 * incoming.dot(normal) * normal).normalize_or_zero()
+}
+
+/// Area-weighted vertex normals of a triangle set.
+fn vertex_normals(set: &TriangleSet) -> Vec<Vec3> {
+    let mut normals = vec![Vec3::ZERO; set.positions.len()];
+    for triangle in set.triangles {
+        let [a, b, c] = triangle.map(|v| set.positions[v as usize]);
+        let weighted = (b - a).cross(c - a);
+        for &vertex in triangle {
+            normals[vertex as usize] += weighted;
+        }
+    }
+    normals.into_iter().map(|n| n.normalize_or_zero()).collect()
+}
+
+impl Technique for LightSkin {
+    fn name(&self) -> &'static str {
+        "lightskin"
+    }
+
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let mut timings = std::mem::take(&mut self.timings);
+        timings.clear();
+        if !self.dynamic_meshes.is_empty() {
+            let world = timings.time("dynamic meshes", || {
+                DynamicWorld::place(&self.dynamic_meshes, frame.index)
+            });
+            self.place_dynamic_points(&world);
+            self.dynamic_world = Some(world);
+        }
+        timings.time("rsm", || {
+            let mut vals = std::mem::take(&mut self.vals);
+            vals::render_rsms(
+                &self.geometry(),
+                frame.lights,
+                RsmSettings {
+                    resolution: self.params.rsm_resolution,
+                    emissive_resolution: self.params.emissive_resolution,
+                },
+                &mut vals,
+            );
+            vals.extend(&self.point_cloud);
+            vals.pad();
+            self.vals = vals;
+        });
+        if !self.params.interpolation {
+            timings.time("brute force", || self.brute_force_receivers());
+            self.timings = timings;
+            return Ok(());
+        }
+        timings.time("gather", || self.gather_points());
+        if self.params.occlusion {
+            timings.time("occlusion", || self.compute_occlusion());
+        } else {
+            self.occlusion.fill(0.0);
+        }
+        timings.time("renormalise", || self.renormalise_points());
+        timings.time("interpolate", || self.interpolate());
+        self.timings = timings;
+        Ok(())
+    }
+
+    fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
+        if !self.params.interpolation {
+            return self.brute_force_irradiance(point.position, point.normal);
+        }
+        if point.triangle as usize >= self.context.scene.mesh.triangles.len() {
+            return self
+                .dynamic_surface_light(
+                    point.triangle,
+                    point.barycentric,
+                    point.position,
+                    point.normal,
+                )
+                .unwrap_or_else(|| {
+                    self.indirect_irradiance_in_space(point.position, point.normal)
+                });
+        }
+        let atlas = &self.context.atlas;
+        let power = atlas.sample(&self.diffuse_power_map, point.triangle, point.barycentric);
+        let light = atlas.sample(
+            &self.diffuse_position_map,
+            point.triangle,
+            point.barycentric,
+        );
+        phong_diffuse(power, light, point.position, point.normal)
+    }
+
+    fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
+        if !self.params.interpolation {
+            return self.brute_force_irradiance(position, normal);
+        }
+        // Rare (back faces, points off the meshes): a linear scan for the
+        // eight nearest facing points is cheaper than keeping a moving grid.
+        let mut nearest: Vec<(u32, f32, Vec3)> = Vec::with_capacity(NEIGHBOURS + 1);
+        for (index, (&point, &point_normal)) in self
+            .points
+            .positions
+            .iter()
+            .zip(&self.points.normals)
+            .enumerate()
+        {
+            if point_normal.dot(normal) <= 0.0 {
+                continue;
+            }
+            let distance = point.distance(position);
+            if nearest.len() < NEIGHBOURS || distance < nearest[nearest.len() - 1].1 {
+                let at = nearest.partition_point(|&(_, d, _)| d <= distance);
+                nearest.insert(at, (index as u32, distance, point_normal));
+                nearest.truncate(NEIGHBOURS);
+            }
+        }
+        let (indices, weights) = points::interpolation_weights(normal, &nearest);
+        let mut power = Rgb::ZERO;
+        let mut light = Vec3::ZERO;
+        for slot in 0..nearest.len() {
+            power += self.point_diffuse.power[indices[slot] as usize] * weights[slot];
+            light += self.point_diffuse.position[indices[slot] as usize] * weights[slot];
+        }
+        phong_diffuse(power, light, position, normal)
+    }
+
+    fn glossy_radiance(
+        &self,
+        point: &SurfacePoint,
+        toward_viewer: Vec3,
+        exponent: f32,
+    ) -> Option<Rgb> {
+        if self.glossy_sums.is_empty()
+            || !self.params.interpolation
+            || exponent <= 1.0
+            || point.triangle as usize >= self.context.scene.mesh.triangles.len()
+        {
+            return None;
+        }
+        let atlas = &self.context.atlas;
+        let power = atlas.sample(&self.glossy_power_map, point.triangle, point.barycentric);
+        let light = atlas.sample(&self.glossy_position_map, point.triangle, point.barycentric);
+        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
+            .normalize_or_zero();
+        let lobe = self.params.specular * (exponent + 1.0) / (2.0 * PI);
+        Some(
+            phong_glossy(
+                power,
+                light,
+                point.position,
+                point.normal,
+                reflected,
+                exponent,
+            ) * lobe,
+        )
+    }
+
+    fn receiver_irradiance(&self) -> Option<&[Rgb]> {
+        Some(&self.receiver_irradiance)
+    }
+
+    fn timings(&self) -> &StageTimings {
+        &self.timings
+    }
+
+    fn memory(&self) -> Vec<MemoryEntry> {
+        let sums = std::mem::size_of::<Sums>();
+        let mut entries = vec![
+            MemoryEntry::new("VALs", self.vals.memory_bytes()),
+            MemoryEntry::new(
+                "sparse points",
+                self.points.positions.len() * (12 + 12 + 4 + 4),
+            ),
+            MemoryEntry::new(
+                "gathered sums",
+                (self.sums.len() + self.glossy_sums.len()) * sums
+                    + (self.light_radius.len() + self.occlusion.len()) * 4,
+            ),
+            MemoryEntry::new(
+                "sparse point lights",
+                self.point_diffuse.memory_bytes() + self.point_glossy.memory_bytes(),
+            ),
+            MemoryEntry::new(
+                "neighbour lists",
+                self.texel_interpolation.memory_bytes() + self.vertex_interpolation.memory_bytes(),
+            ),
+            MemoryEntry::new(
+                "texel lights",
+                self.texel_diffuse.memory_bytes() + self.texel_glossy.memory_bytes(),
+            ),
+            MemoryEntry::new(
+                "light maps",
+                (self.diffuse_power_map.len()
+                    + self.diffuse_position_map.len()
+                    + self.glossy_power_map.len()
+                    + self.glossy_position_map.len())
+                    * 12,
+            ),
+            MemoryEntry::new("receiver irradiance", self.receiver_irradiance.len() * 12),
+        ];
+        if !self.vertex_normals_local.is_empty() {
+            entries.push(MemoryEntry::new(
+                "moving-mesh vertex lights",
+                self.vertex_normals_local.len() * 12
+                    + self.vertex_diffuse.memory_bytes()
+                    + self.vertex_glossy.memory_bytes(),
+            ));
+        }
+        entries
+    }
+}

@@ -1,0 +1,320 @@
+//! Sparse scene points in model space and the neighbour lists that
+//! interpolate from them (section 3.2, step 3).
+//!
+//! Points are anchored to a triangle and barycentric coordinates, so they
+//! stay fixed to their mesh whatever it does. They are spread Poisson-like:
+//! area-proportional Halton candidates, accepted by dart throwing with a
+//! minimum distance that shrinks until the requested count is reached.
+//! Neighbour lists (eight nearest points with a facing normal, weights of
+//! equation 12) are built once, when a mesh is loaded.
+
+use glam::{Vec2, Vec3};
+use relight_core::sampling::{radical_inverse, uniform_triangle};
+use std::collections::HashMap;
+
+/// Neighbours per interpolated target (the paper's eight).
+pub const NEIGHBOURS: usize = 8;
+
+/// A point fixed to a mesh.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anchor {
+    pub triangle: u32,
+    pub barycentric: Vec2,
+}
+
+/// Triangle geometry in one space (world for the static scene, mesh space
+/// for moving meshes).
+pub struct TriangleSet<'a> {
+    pub positions: &'a [Vec3],
+    pub triangles: &'a [[u32; 3]],
+}
+
+impl TriangleSet<'_> {
+    pub fn vertices(&self, triangle: u32) -> [Vec3; 3] {
+        self.triangles[triangle as usize].map(|v| self.positions[v as usize])
+    }
+
+    pub fn point(&self, anchor: Anchor) -> Vec3 {
+        let [a, b, c] = self.vertices(anchor.triangle);
+        a + (b - a) * anchor.barycentric.x + (c - a) * anchor.barycentric.y
+    }
+
+    pub fn normal(&self, triangle: u32) -> Vec3 {
+        let [a, b, c] = self.vertices(triangle);
+        (b - a).cross(c - a).normalize_or_zero()
+    }
+
+    fn area(&self, triangle: u32) -> f64 {
+        let [a, b, c] = self.vertices(triangle);
+        0.5 * (b - a).cross(c - a).length() as f64
+    }
+
+    pub fn total_area(&self) -> f64 {
+        (0..self.triangles.len() as u32).map(|t| self.area(t)).sum()
+    }
+}
+
+/// Candidates per requested point for dart throwing.
+const CANDIDATES_PER_POINT: usize = 8;
+
+/// About `count` points spread evenly over `set` (fewer only when `set`
+/// has no area). `seed` rotates the Halton candidates (Cranley-Patterson),
+/// so different seeds give different, equally even, distributions.
+pub fn spread_points(set: &TriangleSet, count: usize, seed: u64) -> Vec<Anchor> {
+    let total_area = set.total_area();
+    if count == 0 || total_area <= 0.0 {
+        return Vec::new();
+    }
+    let mut cumulative = Vec::with_capacity(set.triangles.len());
+    let mut running = 0.0f64;
+    for triangle in 0..set.triangles.len() as u32 {
+        running += set.area(triangle);
+        cumulative.push(running);
+    }
+    let rotation = [
+        radical_inverse(7, seed),
+        radical_inverse(11, seed),
+        radical_inverse(13, seed),
+    ];
+    let candidates: Vec<(Anchor, Vec3)> = (0..(count * CANDIDATES_PER_POINT) as u64)
+        .map(|index| {
+            let rotate =
+                |base: u32, offset: f64| (radical_inverse(base, index + 1) + offset).fract();
+            let target = rotate(2, rotation[0]) * running;
+            let triangle = cumulative
+                .partition_point(|&c| c <= target)
+                .min(cumulative.len() - 1) as u32;
+            let barycentric = uniform_triangle(Vec2::new(
+                rotate(3, rotation[1]) as f32,
+                rotate(5, rotation[2]) as f32,
+            ));
+            let anchor = Anchor {
+                triangle,
+                barycentric,
+            };
+            (anchor, set.point(anchor))
+        })
+        .collect();
+    // Hexagonal packing of `count` discs of diameter d covers
+    // count * sqrt(3)/2 * d^2; dart throwing stalls well below that.
+    let hexagonal = (2.0 * total_area / (3f64.sqrt() * count as f64)).sqrt() as f32;
+    let mut spacing = 0.8 * hexagonal;
+    let mut accepted: Vec<(Anchor, Vec3)> = Vec::with_capacity(count);
+    let mut taken = vec![false; candidates.len()];
+    while accepted.len() < count && spacing > hexagonal * 1e-4 {
+        let mut grid: HashMap<[i32; 3], Vec<Vec3>> = HashMap::new();
+        let cell_of = |p: Vec3| (p / spacing).floor().as_ivec3().to_array();
+        for &(_, position) in &accepted {
+            grid.entry(cell_of(position)).or_default().push(position);
+        }
+        for (index, &(anchor, position)) in candidates.iter().enumerate() {
+            if accepted.len() >= count {
+                break;
+            }
+            if taken[index] {
+                continue;
+            }
+            let cell = cell_of(position);
+            let mut free = true;
+            'search: for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        let key = [cell[0] + dx, cell[1] + dy, cell[2] + dz];
+                        if let Some(points) = grid.get(&key) {
+                            if points
+                                .iter()
+                                .any(|p| p.distance_squared(position) < spacing * spacing)
+                            {
+                                free = false;
+                                break 'search;
+                            }
+                        }
+                    }
+                }
+            }
+            if free {
+                taken[index] = true;
+                accepted.push((anchor, position));
+                grid.entry(cell).or_default().push(position);
+            }
+        }
+        spacing *= 0.85;
+    }
+    accepted.into_iter().map(|(anchor, _)| anchor).collect()
+}
+
+/// Uniform hash grid over points for nearest-neighbour queries.
+pub struct PointGrid<'a> {
+    positions: &'a [Vec3],
+    cell: f32,
+    cells: HashMap<[i32; 3], Vec<u32>>,
+    low: Vec3,
+    high: Vec3,
+}
+
+impl<'a> PointGrid<'a> {
+    pub fn new(positions: &'a [Vec3], cell: f32) -> Self {
+        let cell = cell.max(1e-6);
+        let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
+        let mut low = Vec3::splat(f32::INFINITY);
+        let mut high = Vec3::splat(f32::NEG_INFINITY);
+        for (index, &position) in positions.iter().enumerate() {
+            cells
+                .entry((position / cell).floor().as_ivec3().to_array())
+                .or_default()
+                .push(index as u32);
+            low = low.min(position);
+            high = high.max(position);
+        }
+        Self {
+            positions,
+            cell,
+            cells,
+            low,
+            high,
+        }
+    }
+
+    /// The `NEIGHBOURS` nearest points whose normal faces the same side as
+    /// `normal` (positive dot product), nearest first, as (index, distance).
+    /// Points facing away would get weight zero in equation 12 anyway;
+    /// skipping them keeps a texel in a corner from ending up with only
+    /// the other wall's points and no light.
+    pub fn nearest_facing(
+        &self,
+        position: Vec3,
+        normal: Vec3,
+        normals: &[Vec3],
+        found: &mut Vec<(u32, f32)>,
+    ) {
+        found.clear();
+        if self.positions.is_empty() {
+            return;
+        }
+        let centre = (position / self.cell).floor().as_ivec3();
+        let reach = ((self.high - self.low).max_element() / self.cell).ceil() as i32 + 2;
+        let consider = |index: u32, found: &mut Vec<(u32, f32)>| {
+            if normals[index as usize].dot(normal) <= 0.0 {
+                return;
+            }
+            let distance = self.positions[index as usize].distance(position);
+            if found.len() < NEIGHBOURS || distance < found[found.len() - 1].1 {
+                let at = found.partition_point(|&(i, d)| (d, i) < (distance, index));
+                found.insert(at, (index, distance));
+                found.truncate(NEIGHBOURS);
+            }
+        };
+        for ring in 0..=reach {
+            for dx in -ring..=ring {
+                for dy in -ring..=ring {
+                    for dz in -ring..=ring {
+                        if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                            continue;
+                        }
+                        let key = [centre.x + dx, centre.y + dy, centre.z + dz];
+                        if let Some(indices) = self.cells.get(&key) {
+                            for &index in indices {
+                                consider(index, found);
+                            }
+                        }
+                    }
+                }
+            }
+            // Every point outside the searched rings is at least `ring`
+            // cells away.
+            if found.len() == NEIGHBOURS && found[NEIGHBOURS - 1].1 <= ring as f32 * self.cell {
+                return;
+            }
+        }
+    }
+}
+
+/// Fixed neighbours and normalised weights of interpolated targets
+/// (texels or vertices), struct of arrays.
+#[derive(Clone, Debug, Default)]
+pub struct Interpolation {
+    pub neighbours: Vec<[u32; NEIGHBOURS]>,
+    pub weights: Vec<[f32; NEIGHBOURS]>,
+}
+
+impl Interpolation {
+    pub fn len(&self) -> usize {
+        self.weights.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.weights.is_empty()
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.len() * NEIGHBOURS * 8
+    }
+
+    /// Builds the lists for `targets` against `points` (same space).
+    pub fn build(
+        target_positions: &[Vec3],
+        target_normals: &[Vec3],
+        point_positions: &[Vec3],
+        point_normals: &[Vec3],
+        spacing: f32,
+    ) -> Self {
+        use rayon::prelude::*;
+        let grid = PointGrid::new(point_positions, spacing.max(1e-6) * 2.0);
+        let (neighbours, weights) = target_positions
+            .par_iter()
+            .zip(target_normals)
+            .map_init(Vec::new, |found, (&position, &normal)| {
+                grid.nearest_facing(position, normal, point_normals, found);
+                let entries: Vec<(u32, f32, Vec3)> = found
+                    .iter()
+                    .map(|&(index, distance)| (index, distance, point_normals[index as usize]))
+                    .collect();
+                interpolation_weights(normal, &entries)
+            })
+            .unzip();
+        Self {
+            neighbours,
+            weights,
+        }
+    }
+}
+
+/// Equation 12: w_j = (1 - d_j / d_max) * clamp(n_v . n_j, 0, 1) over the
+/// given (index, distance, normal) neighbours, normalised to sum to one.
+/// When every weight vanishes (one neighbour, or all at the same distance)
+/// the neighbours share equally by normal agreement instead, and with no
+/// neighbour at all the weights are zero.
+pub fn interpolation_weights(
+    normal: Vec3,
+    neighbours: &[(u32, f32, Vec3)],
+) -> ([u32; NEIGHBOURS], [f32; NEIGHBOURS]) {
+    let mut indices = [0u32; NEIGHBOURS];
+    let mut weights = [0f32; NEIGHBOURS];
+    let farthest = neighbours
+        .iter()
+        .map(|&(_, distance, _)| distance)
+        .fold(0.0f32, f32::max);
+    let mut total = 0.0;
+    for (slot, &(index, distance, point_normal)) in neighbours.iter().take(NEIGHBOURS).enumerate() {
+        indices[slot] = index;
+        let closeness = if farthest > 0.0 {
+            1.0 - distance / farthest
+        } else {
+            1.0
+        };
+        weights[slot] = closeness * normal.dot(point_normal).clamp(0.0, 1.0);
+        total += weights[slot];
+    }
+    if total <= 0.0 {
+        for (slot, &(_, _, point_normal)) in neighbours.iter().take(NEIGHBOURS).enumerate() {
+            weights[slot] = normal.dot(point_normal).clamp(0.0, 1.0);
+            total += weights[slot];
+        }
+    }
+    if total > 0.0 {
+        for weight in &mut weights {
+            *weight /= total;
+        }
+    }
+    (indices, weights)
+}

@@ -1,0 +1,451 @@
+//! Virtual area lights (VALs) from reflective shadow maps, rendered by ray
+//! casting from each light (section 4.1): every texel's first hit becomes a
+//! Lambertian disc that re-emits the flux the texel received times the
+//! albedo there.
+
+use crate::geometry::Geometry;
+use glam::Vec3;
+use rayon::prelude::*;
+use relight_core::colour::luminance;
+use relight_core::Rgb;
+use relight_scene::Light;
+use relight_trace::direct::spot_falloff;
+use std::f32::consts::{FRAC_1_PI, PI};
+
+/// Kernels read VALs eight at a time; padding VALs carry no power.
+pub const LANES: usize = 8;
+
+/// A texel seen at a grazing angle covers a long sliver of surface; its disc
+/// is capped at this many times the texel's perpendicular footprint so that
+/// one grazing texel does not become a huge soft light.
+const MAX_GRAZING_STRETCH: f32 = 5.0;
+
+/// One virtual area light before it is stored in [`Vals`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Val {
+    pub position: Vec3,
+    /// Unit normal of the side that emits.
+    pub normal: Vec3,
+    /// Re-emitted flux over pi (W/pi): a Lambertian disc of this flux gives
+    /// irradiance `power_over_pi * cos_j * cos_i / (r^2 + d^2)` (equation 3
+    /// with the disc's radiance folded in).
+    pub power_over_pi: Rgb,
+    /// Disc area (m^2).
+    pub area: f32,
+}
+
+/// VALs in struct-of-arrays form, padded to a multiple of [`LANES`].
+#[derive(Clone, Debug, Default)]
+pub struct Vals {
+    pub px: Vec<f32>,
+    pub py: Vec<f32>,
+    pub pz: Vec<f32>,
+    pub nx: Vec<f32>,
+    pub ny: Vec<f32>,
+    pub nz: Vec<f32>,
+    pub power_r: Vec<f32>,
+    pub power_g: Vec<f32>,
+    pub power_b: Vec<f32>,
+    /// Luminance of the power: the weight of a VAL's position in the
+    /// averaged light (see `gather`).
+    pub power_luminance: Vec<f32>,
+    /// Disc radius squared, r^2 = area / pi.
+    pub radius_sq: Vec<f32>,
+    /// VALs that are real (the rest is padding).
+    pub count: usize,
+    /// Sums over the real VALs of position and position squared, for the
+    /// epsilon term of equation 7, which adds the same amount for every VAL
+    /// at every sparse point and so needs no per-pair work.
+    pub position_sum: [f64; 3],
+    pub position_square_sum: [f64; 3],
+}
+
+impl Vals {
+    pub fn clear(&mut self) {
+        for column in self.columns_mut() {
+            column.clear();
+        }
+        self.count = 0;
+        self.position_sum = [0.0; 3];
+        self.position_square_sum = [0.0; 3];
+    }
+
+    fn columns_mut(&mut self) -> [&mut Vec<f32>; 11] {
+        [
+            &mut self.px,
+            &mut self.py,
+            &mut self.pz,
+            &mut self.nx,
+            &mut self.ny,
+            &mut self.nz,
+            &mut self.power_r,
+            &mut self.power_g,
+            &mut self.power_b,
+            &mut self.power_luminance,
+            &mut self.radius_sq,
+        ]
+    }
+
+    /// Appends real VALs; call [`Vals::pad`] after the last.
+    pub fn extend(&mut self, vals: &[Val]) {
+        for val in vals {
+            self.px.push(val.position.x);
+            self.py.push(val.position.y);
+            self.pz.push(val.position.z);
+            self.nx.push(val.normal.x);
+            self.ny.push(val.normal.y);
+            self.nz.push(val.normal.z);
+            self.power_r.push(val.power_over_pi.x);
+            self.power_g.push(val.power_over_pi.y);
+            self.power_b.push(val.power_over_pi.z);
+            self.power_luminance.push(luminance(val.power_over_pi));
+            self.radius_sq.push(val.area * FRAC_1_PI);
+            for axis in 0..3 {
+                let coordinate = val.position[axis] as f64;
+                self.position_sum[axis] += coordinate;
+                self.position_square_sum[axis] += coordinate * coordinate;
+            }
+        }
+        self.count += vals.len();
+    }
+
+    /// Pads to a multiple of [`LANES`] with VALs that have no power and no
+    /// normal, far away, so that kernels need no tail loop and never divide
+    /// zero by zero.
+    pub fn pad(&mut self) {
+        while !self.px.len().is_multiple_of(LANES) {
+            self.px.push(1e6);
+            self.py.push(1e6);
+            self.pz.push(1e6);
+            for column in [
+                &mut self.nx,
+                &mut self.ny,
+                &mut self.nz,
+                &mut self.power_r,
+                &mut self.power_g,
+                &mut self.power_b,
+                &mut self.power_luminance,
+            ] {
+                column.push(0.0);
+            }
+            self.radius_sq.push(1.0);
+        }
+    }
+
+    pub fn padded_len(&self) -> usize {
+        self.px.len()
+    }
+
+    pub fn get(&self, index: usize) -> Val {
+        Val {
+            position: Vec3::new(self.px[index], self.py[index], self.pz[index]),
+            normal: Vec3::new(self.nx[index], self.ny[index], self.nz[index]),
+            power_over_pi: Rgb::new(
+                self.power_r[index],
+                self.power_g[index],
+                self.power_b[index],
+            ),
+            area: self.radius_sq[index] * PI,
+        }
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.px.capacity() * 4 * 11
+    }
+
+    /// Total re-emitted flux (W), for conservation checks.
+    pub fn total_power(&self) -> Rgb {
+        let mut total = Rgb::ZERO;
+        for index in 0..self.count {
+            total += self.get(index).power_over_pi * PI;
+        }
+        total
+    }
+}
+
+/// Where primary light comes from, as the RSM sees it.
+#[derive(Clone, Copy, Debug)]
+enum Source {
+    /// Radiant intensity from a point, with an angular profile.
+    Point {
+        position: Vec3,
+        intensity: Rgb,
+        profile: Profile,
+    },
+    Directional {
+        direction: Vec3,
+        irradiance: Rgb,
+    },
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Profile {
+    Isotropic,
+    Spot {
+        axis: Vec3,
+        inner: f32,
+        outer: f32,
+    },
+    /// A small Lambertian emitter: intensity falls with the cosine to `normal`.
+    Lambertian {
+        normal: Vec3,
+    },
+}
+
+impl Profile {
+    fn factor(&self, direction: Vec3) -> f32 {
+        match *self {
+            Profile::Isotropic => 1.0,
+            Profile::Spot { axis, inner, outer } => spot_falloff(direction.dot(axis), inner, outer),
+            Profile::Lambertian { normal } => direction.dot(normal).max(0.0),
+        }
+    }
+}
+
+/// Settings of the reflective shadow maps.
+#[derive(Clone, Copy, Debug)]
+pub struct RsmSettings {
+    /// Texels per side of each map (a point light has six maps).
+    pub resolution: u32,
+    /// Texels per side of the maps of all emissive triangles together:
+    /// each emitter gets `resolution / sqrt(emitters)`, at least 2.
+    pub emissive_resolution: u32,
+}
+
+/// The six cube faces: (forward, right, up).
+const CUBE_FACES: [(Vec3, Vec3, Vec3); 6] = [
+    (Vec3::X, Vec3::NEG_Z, Vec3::Y),
+    (Vec3::NEG_X, Vec3::Z, Vec3::Y),
+    (Vec3::Y, Vec3::X, Vec3::NEG_Z),
+    (Vec3::NEG_Y, Vec3::X, Vec3::Z),
+    (Vec3::Z, Vec3::X, Vec3::Y),
+    (Vec3::NEG_Z, Vec3::NEG_X, Vec3::Y),
+];
+
+/// Renders every light's reflective shadow maps into `out` (cleared first):
+/// perspective maps for spot lights, six cube faces for point lights and
+/// for each emissive triangle (treated as a small Lambertian emitter at its
+/// centroid), an orthographic map over the scene's bounding sphere for
+/// directional lights. Call [`Vals::pad`] after adding any other VALs.
+pub fn render_rsms(geometry: &Geometry, lights: &[Light], settings: RsmSettings, out: &mut Vals) {
+    out.clear();
+    let resolution = settings.resolution.max(1);
+    let mut sources = Vec::new();
+    for light in lights {
+        match *light {
+            Light::Point {
+                position,
+                intensity,
+            } => sources.push((
+                Source::Point {
+                    position,
+                    intensity,
+                    profile: Profile::Isotropic,
+                },
+                resolution,
+            )),
+            Light::Spot {
+                position,
+                direction,
+                intensity,
+                inner_angle,
+                outer_angle,
+            } => sources.push((
+                Source::Point {
+                    position,
+                    intensity,
+                    profile: Profile::Spot {
+                        axis: direction,
+                        inner: inner_angle,
+                        outer: outer_angle,
+                    },
+                },
+                resolution,
+            )),
+            Light::Directional {
+                direction,
+                irradiance,
+            } => sources.push((
+                Source::Directional {
+                    direction,
+                    irradiance,
+                },
+                resolution,
+            )),
+        }
+    }
+    let emitters = geometry.scene.emissive_triangles();
+    if !emitters.is_empty() && settings.emissive_resolution > 0 {
+        let per_emitter = ((settings.emissive_resolution as f32 / (emitters.len() as f32).sqrt())
+            .round() as u32)
+            .max(2);
+        for &triangle in &emitters {
+            let mesh = &geometry.scene.mesh;
+            let [a, b, c] = mesh.vertices(triangle as usize);
+            let normal = mesh.geometric_normal(triangle as usize);
+            let area = mesh.area(triangle as usize);
+            let radiance = geometry.scene.material_of(triangle as usize).emission;
+            sources.push((
+                Source::Point {
+                    position: (a + b + c) / 3.0 + normal * geometry.ray_epsilon,
+                    // A small Lambertian emitter of radiance L and area A has
+                    // intensity L A cos(theta) (W/sr).
+                    intensity: radiance * area,
+                    profile: Profile::Lambertian { normal },
+                },
+                per_emitter,
+            ));
+        }
+    }
+    for (source, resolution) in sources {
+        let vals = match source {
+            Source::Point {
+                position,
+                intensity,
+                profile,
+            } => match profile {
+                Profile::Spot { axis, outer, .. } => {
+                    let (right, up) = relight_core::sampling::orthonormal_basis(axis);
+                    // Cover the cone; beyond 80 degrees a single map wastes
+                    // most texels, so wide spots are clipped there.
+                    let half_extent = outer.min(80f32.to_radians()).tan();
+                    perspective_map(
+                        geometry,
+                        position,
+                        (axis, right, up),
+                        half_extent,
+                        resolution,
+                        intensity,
+                        profile,
+                    )
+                }
+                _ => CUBE_FACES
+                    .iter()
+                    .flat_map(|&face| {
+                        perspective_map(
+                            geometry, position, face, 1.0, resolution, intensity, profile,
+                        )
+                    })
+                    .collect(),
+            },
+            Source::Directional {
+                direction,
+                irradiance,
+            } => orthographic_map(geometry, direction, irradiance, resolution),
+        };
+        out.extend(&vals);
+    }
+}
+
+/// One perspective map: texel (i, j) looks along forward + u right + v up
+/// with u, v in (-half_extent, half_extent); its solid angle is
+/// s^2 / (1 + u^2 + v^2)^(3/2) for texel side s on the unit-distance plane.
+fn perspective_map(
+    geometry: &Geometry,
+    origin: Vec3,
+    (forward, right, up): (Vec3, Vec3, Vec3),
+    half_extent: f32,
+    resolution: u32,
+    intensity: Rgb,
+    profile: Profile,
+) -> Vec<Val> {
+    let side = 2.0 * half_extent / resolution as f32;
+    let rows: Vec<Vec<Val>> = (0..resolution)
+        .into_par_iter()
+        .map(|row| {
+            let mut vals = Vec::new();
+            for column in 0..resolution {
+                let u = (column as f32 + 0.5) * side - half_extent;
+                let v = (row as f32 + 0.5) * side - half_extent;
+                let direction = forward + right * u + up * v;
+                let length_sq = direction.length_squared();
+                let unit = direction / length_sq.sqrt();
+                let factor = profile.factor(unit);
+                if factor <= 0.0 {
+                    continue;
+                }
+                let solid_angle = side * side / (length_sq * length_sq.sqrt());
+                let Some(hit) = geometry.first_hit(origin, unit) else {
+                    continue;
+                };
+                let incident_power = intensity * (factor * solid_angle);
+                let cos_hit = hit.normal.dot(unit).abs();
+                let footprint = solid_angle * hit.distance * hit.distance;
+                if let Some(val) = reflect(&hit, unit, incident_power, footprint, cos_hit) {
+                    vals.push(val);
+                }
+            }
+            vals
+        })
+        .collect();
+    rows.into_iter().flatten().collect()
+}
+
+/// An orthographic map over the bounding sphere of everything that can be
+/// lit, perpendicular to `direction`.
+fn orthographic_map(
+    geometry: &Geometry,
+    direction: Vec3,
+    irradiance: Rgb,
+    resolution: u32,
+) -> Vec<Val> {
+    let (centre, radius) = geometry.bounding_sphere();
+    let (right, up) = relight_core::sampling::orthonormal_basis(direction);
+    let side = 2.0 * radius / resolution as f32;
+    let texel_area = side * side;
+    let start = centre - direction * (2.0 * radius);
+    let rows: Vec<Vec<Val>> = (0..resolution)
+        .into_par_iter()
+        .map(|row| {
+            let mut vals = Vec::new();
+            for column in 0..resolution {
+                let u = (column as f32 + 0.5) * side - radius;
+                let v = (row as f32 + 0.5) * side - radius;
+                let origin = start + right * u + up * v;
+                let Some(hit) = geometry.first_hit(origin, direction) else {
+                    continue;
+                };
+                let cos_hit = hit.normal.dot(direction).abs();
+                if let Some(val) = reflect(
+                    &hit,
+                    direction,
+                    irradiance * texel_area,
+                    texel_area,
+                    cos_hit,
+                ) {
+                    vals.push(val);
+                }
+            }
+            vals
+        })
+        .collect();
+    rows.into_iter().flatten().collect()
+}
+
+/// The VAL a texel leaves: the flux it received times the albedo, on the
+/// side the light came from, over the surface area the texel covers
+/// (perpendicular footprint / cos, capped for grazing texels).
+fn reflect(
+    hit: &crate::geometry::SurfaceHit,
+    travel: Vec3,
+    incident_power: Rgb,
+    perpendicular_footprint: f32,
+    cos_hit: f32,
+) -> Option<Val> {
+    let power = incident_power * hit.albedo;
+    if power.max_element() <= 0.0 {
+        return None;
+    }
+    let normal = if hit.normal.dot(travel) > 0.0 {
+        -hit.normal
+    } else {
+        hit.normal
+    };
+    let area = perpendicular_footprint / cos_hit.max(1.0 / MAX_GRAZING_STRETCH);
+    Some(Val {
+        position: hit.position,
+        normal,
+        power_over_pi: power * FRAC_1_PI,
+        area,
+    })
+}
