@@ -99,11 +99,11 @@ pub fn accumulate_portable<const SPREAD: bool>(
         let weight = vals.power_luminance[j] * geometry;
         sums.weight += weight;
         let p = [vals.px[j], vals.py[j], vals.pz[j]];
-        for (axis, coordinate) in p.into_iter().enumerate() {
-            let weighted = weight * coordinate;
-            sums.weighted_position[axis] += weighted;
+        let p_sq = [vals.px_sq[j], vals.py_sq[j], vals.pz_sq[j]];
+        for axis in 0..3 {
+            sums.weighted_position[axis] += weight * p[axis];
             if SPREAD {
-                sums.weighted_square[axis] += weighted * coordinate;
+                sums.weighted_square[axis] += weight * p_sq[axis];
             }
         }
     }
@@ -119,73 +119,158 @@ unsafe fn accumulate_avx2<const SPREAD: bool>(
     normal: Vec3,
     sums: &mut Sums,
 ) {
+    let mut group = [*sums];
+    accumulate_avx2_group::<SPREAD, 1>(vals, start, end, [position], [normal], &mut group);
+    *sums = group[0];
+}
+
+/// Receivers per pass of the AVX2 kernel: each VAL load serves both, and
+/// the two independent dependency chains keep the FP units busy (the
+/// single-receiver loop is bound by its chain's latency, not by issue).
+pub const RECEIVERS_PER_PASS: usize = 4;
+
+/// [`accumulate`] for up to a few receivers at once.
+pub fn accumulate_many<const SPREAD: bool>(
+    vals: &Vals,
+    start: usize,
+    end: usize,
+    positions: &[Vec3],
+    normals: &[Vec3],
+    sums: &mut [Sums],
+) {
+    debug_assert!(
+        start.is_multiple_of(LANES) && end.is_multiple_of(LANES) && end <= vals.padded_len()
+    );
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            let mut index = 0;
+            while index + RECEIVERS_PER_PASS <= sums.len() {
+                let mut group: [Sums; RECEIVERS_PER_PASS] =
+                    std::array::from_fn(|offset| sums[index + offset]);
+                // SAFETY: AVX2 and FMA are present (checked above); the
+                // range lies inside every column (padding to LANES).
+                unsafe {
+                    accumulate_avx2_group::<SPREAD, RECEIVERS_PER_PASS>(
+                        vals,
+                        start,
+                        end,
+                        std::array::from_fn(|offset| positions[index + offset]),
+                        std::array::from_fn(|offset| normals[index + offset]),
+                        &mut group,
+                    )
+                };
+                sums[index..index + RECEIVERS_PER_PASS].copy_from_slice(&group);
+                index += RECEIVERS_PER_PASS;
+            }
+            for rest in index..sums.len() {
+                accumulate::<SPREAD>(
+                    vals,
+                    start,
+                    end,
+                    positions[rest],
+                    normals[rest],
+                    &mut sums[rest],
+                );
+            }
+            return;
+        }
+    }
+    for index in 0..sums.len() {
+        accumulate_portable::<SPREAD>(
+            vals,
+            start,
+            end,
+            positions[index],
+            normals[index],
+            &mut sums[index],
+        );
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn accumulate_avx2_group<const SPREAD: bool, const R: usize>(
+    vals: &Vals,
+    start: usize,
+    end: usize,
+    positions: [Vec3; R],
+    normals: [Vec3; R],
+    sums: &mut [Sums; R],
+) {
     use std::arch::x86_64::*;
-    let x = _mm256_set1_ps(position.x);
-    let y = _mm256_set1_ps(position.y);
-    let z = _mm256_set1_ps(position.z);
-    // -n, so that cos_receiver is a plain dot product with v.
-    let mx = _mm256_set1_ps(-normal.x);
-    let my = _mm256_set1_ps(-normal.y);
-    let mz = _mm256_set1_ps(-normal.z);
     let zero = _mm256_setzero_ps();
     let min_distance_sq = _mm256_set1_ps(MIN_DISTANCE_SQ);
-    let mut irradiance_r = zero;
-    let mut irradiance_g = zero;
-    let mut irradiance_b = zero;
-    let mut weight_sum = zero;
-    let mut sum_x = zero;
-    let mut sum_y = zero;
-    let mut sum_z = zero;
-    let mut square_x = zero;
-    let mut square_y = zero;
-    let mut square_z = zero;
+    let x = positions.map(|p| _mm256_set1_ps(p.x));
+    let y = positions.map(|p| _mm256_set1_ps(p.y));
+    let z = positions.map(|p| _mm256_set1_ps(p.z));
+    // -n, so that cos_receiver is a plain dot product with v.
+    let mx = normals.map(|n| _mm256_set1_ps(-n.x));
+    let my = normals.map(|n| _mm256_set1_ps(-n.y));
+    let mz = normals.map(|n| _mm256_set1_ps(-n.z));
+    let mut irradiance_r = [zero; R];
+    let mut irradiance_g = [zero; R];
+    let mut irradiance_b = [zero; R];
+    let mut weight_sum = [zero; R];
+    let mut sum_x = [zero; R];
+    let mut sum_y = [zero; R];
+    let mut sum_z = [zero; R];
+    let mut square_x = [zero; R];
+    let mut square_y = [zero; R];
+    let mut square_z = [zero; R];
     let column = |values: &Vec<f32>, j: usize| _mm256_loadu_ps(values.as_ptr().add(j));
     let mut j = start;
     while j < end {
         let px = column(&vals.px, j);
         let py = column(&vals.py, j);
         let pz = column(&vals.pz, j);
-        let vx = _mm256_sub_ps(x, px);
-        let vy = _mm256_sub_ps(y, py);
-        let vz = _mm256_sub_ps(z, pz);
-        let distance_sq = _mm256_max_ps(
-            _mm256_fmadd_ps(vz, vz, _mm256_fmadd_ps(vy, vy, _mm256_mul_ps(vx, vx))),
-            min_distance_sq,
-        );
-        let cos_val = _mm256_fmadd_ps(
-            column(&vals.nz, j),
-            vz,
-            _mm256_fmadd_ps(
-                column(&vals.ny, j),
-                vy,
-                _mm256_mul_ps(column(&vals.nx, j), vx),
-            ),
-        );
-        let cos_receiver = _mm256_fmadd_ps(mz, vz, _mm256_fmadd_ps(my, vy, _mm256_mul_ps(mx, vx)));
-        let numerator = _mm256_mul_ps(
-            _mm256_max_ps(cos_val, zero),
-            _mm256_max_ps(cos_receiver, zero),
-        );
-        let denominator = _mm256_mul_ps(
-            distance_sq,
-            _mm256_add_ps(column(&vals.radius_sq, j), distance_sq),
-        );
-        let geometry = _mm256_div_ps(numerator, denominator);
-        irradiance_r = _mm256_fmadd_ps(column(&vals.power_r, j), geometry, irradiance_r);
-        irradiance_g = _mm256_fmadd_ps(column(&vals.power_g, j), geometry, irradiance_g);
-        irradiance_b = _mm256_fmadd_ps(column(&vals.power_b, j), geometry, irradiance_b);
-        let weight = _mm256_mul_ps(column(&vals.power_luminance, j), geometry);
-        weight_sum = _mm256_add_ps(weight_sum, weight);
-        let weighted_x = _mm256_mul_ps(weight, px);
-        let weighted_y = _mm256_mul_ps(weight, py);
-        let weighted_z = _mm256_mul_ps(weight, pz);
-        sum_x = _mm256_add_ps(sum_x, weighted_x);
-        sum_y = _mm256_add_ps(sum_y, weighted_y);
-        sum_z = _mm256_add_ps(sum_z, weighted_z);
-        if SPREAD {
-            square_x = _mm256_fmadd_ps(weighted_x, px, square_x);
-            square_y = _mm256_fmadd_ps(weighted_y, py, square_y);
-            square_z = _mm256_fmadd_ps(weighted_z, pz, square_z);
+        let nx = column(&vals.nx, j);
+        let ny = column(&vals.ny, j);
+        let nz = column(&vals.nz, j);
+        let radius_sq = column(&vals.radius_sq, j);
+        let power_r = column(&vals.power_r, j);
+        let power_g = column(&vals.power_g, j);
+        let power_b = column(&vals.power_b, j);
+        let luminance = column(&vals.power_luminance, j);
+        for r in 0..R {
+            let vx = _mm256_sub_ps(x[r], px);
+            let vy = _mm256_sub_ps(y[r], py);
+            let vz = _mm256_sub_ps(z[r], pz);
+            let distance_sq = _mm256_max_ps(
+                _mm256_fmadd_ps(vz, vz, _mm256_fmadd_ps(vy, vy, _mm256_mul_ps(vx, vx))),
+                min_distance_sq,
+            );
+            let cos_val = _mm256_fmadd_ps(nz, vz, _mm256_fmadd_ps(ny, vy, _mm256_mul_ps(nx, vx)));
+            let cos_receiver = _mm256_fmadd_ps(
+                mz[r],
+                vz,
+                _mm256_fmadd_ps(my[r], vy, _mm256_mul_ps(mx[r], vx)),
+            );
+            let numerator = _mm256_mul_ps(
+                _mm256_max_ps(cos_val, zero),
+                _mm256_max_ps(cos_receiver, zero),
+            );
+            let denominator = _mm256_mul_ps(distance_sq, _mm256_add_ps(radius_sq, distance_sq));
+            // The reciprocal estimate alone (relative error below 1.5 *
+            // 2^-12, 0.04 %, far under the method's own error): a Newton
+            // step or a division would lengthen the dependency chain that
+            // limits this loop.
+            let geometry = _mm256_mul_ps(numerator, _mm256_rcp_ps(denominator));
+            irradiance_r[r] = _mm256_fmadd_ps(power_r, geometry, irradiance_r[r]);
+            irradiance_g[r] = _mm256_fmadd_ps(power_g, geometry, irradiance_g[r]);
+            irradiance_b[r] = _mm256_fmadd_ps(power_b, geometry, irradiance_b[r]);
+            let weight = _mm256_mul_ps(luminance, geometry);
+            weight_sum[r] = _mm256_add_ps(weight_sum[r], weight);
+            sum_x[r] = _mm256_fmadd_ps(weight, px, sum_x[r]);
+            sum_y[r] = _mm256_fmadd_ps(weight, py, sum_y[r]);
+            sum_z[r] = _mm256_fmadd_ps(weight, pz, sum_z[r]);
+            if SPREAD {
+                square_x[r] = _mm256_fmadd_ps(weight, column(&vals.px_sq, j), square_x[r]);
+                square_y[r] = _mm256_fmadd_ps(weight, column(&vals.py_sq, j), square_y[r]);
+                square_z[r] = _mm256_fmadd_ps(weight, column(&vals.pz_sq, j), square_z[r]);
+            }
         }
         j += LANES;
     }
@@ -194,17 +279,20 @@ unsafe fn accumulate_avx2<const SPREAD: bool>(
         _mm256_storeu_ps(lanes.as_mut_ptr(), v);
         lanes.iter().sum::<f32>()
     };
-    sums.irradiance[0] += total(irradiance_r);
-    sums.irradiance[1] += total(irradiance_g);
-    sums.irradiance[2] += total(irradiance_b);
-    sums.weight += total(weight_sum);
-    sums.weighted_position[0] += total(sum_x);
-    sums.weighted_position[1] += total(sum_y);
-    sums.weighted_position[2] += total(sum_z);
-    if SPREAD {
-        sums.weighted_square[0] += total(square_x);
-        sums.weighted_square[1] += total(square_y);
-        sums.weighted_square[2] += total(square_z);
+    for r in 0..R {
+        let sums = &mut sums[r];
+        sums.irradiance[0] += total(irradiance_r[r]);
+        sums.irradiance[1] += total(irradiance_g[r]);
+        sums.irradiance[2] += total(irradiance_b[r]);
+        sums.weight += total(weight_sum[r]);
+        sums.weighted_position[0] += total(sum_x[r]);
+        sums.weighted_position[1] += total(sum_y[r]);
+        sums.weighted_position[2] += total(sum_z[r]);
+        if SPREAD {
+            sums.weighted_square[0] += total(square_x[r]);
+            sums.weighted_square[1] += total(square_y[r]);
+            sums.weighted_square[2] += total(square_z[r]);
+        }
     }
 }
 

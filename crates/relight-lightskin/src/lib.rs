@@ -29,6 +29,7 @@
 //! | parameter | default | meaning |
 //! |---|---|---|
 //! | `rsm_resolution` | 48 | texels per side of each reflective shadow map (8 to 512; a point light has six) |
+//! | `vals` | 0 | keep at most this many VALs per frame, evenly subsampled with their power scaled (0: all) |
 //! | `emissive_resolution` | 64 | texels per side shared by all emissive triangles' maps |
 //! | `points` | 4096 | sparse points on the static scene |
 //! | `dynamic_points` | 256 | sparse points on each moving mesh (the paper's Figure 5) |
@@ -108,6 +109,7 @@ impl From<LightSkinError> for TechniqueError {
 #[serde(deny_unknown_fields)]
 pub struct LightSkinParams {
     pub rsm_resolution: u32,
+    pub vals: u32,
     pub emissive_resolution: u32,
     pub points: u32,
     pub dynamic_points: u32,
@@ -125,6 +127,7 @@ impl Default for LightSkinParams {
     fn default() -> Self {
         Self {
             rsm_resolution: 48,
+            vals: 0,
             emissive_resolution: 64,
             points: 4096,
             dynamic_points: 256,
@@ -360,6 +363,7 @@ pub struct LightSkin {
     /// Light sphere radius per point, for occlusion.
     light_radius: Vec<f32>,
     occlusion: Vec<f32>,
+    occluders: occlusion::Occluders,
     point_diffuse: Vpls,
     point_glossy: Vpls,
     texel_interpolation: Interpolation,
@@ -484,6 +488,7 @@ impl LightSkin {
             glossy_sums: vec![Sums::default(); if glossy { point_count } else { 0 }],
             light_radius: vec![0.0; point_count],
             occlusion: vec![0.0; point_count],
+            occluders: occlusion::Occluders::default(),
             point_diffuse: Vpls::zeroed(point_count),
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,
@@ -609,27 +614,15 @@ impl LightSkin {
                 let mut start = 0;
                 while start < vals.padded_len() {
                     let end = (start + block).min(vals.padded_len());
-                    for (offset, point_sums) in sums.iter_mut().enumerate() {
-                        let index = first + offset;
-                        if spread {
-                            gather::accumulate::<true>(
-                                vals,
-                                start,
-                                end,
-                                positions[index],
-                                normals[index],
-                                point_sums,
-                            );
-                        } else {
-                            gather::accumulate::<false>(
-                                vals,
-                                start,
-                                end,
-                                positions[index],
-                                normals[index],
-                                point_sums,
-                            );
-                        }
+                    let count = sums.len();
+                    let positions = &positions[first..first + count];
+                    let normals = &normals[first..first + count];
+                    if spread {
+                        gather::accumulate_many::<true>(vals, start, end, positions, normals, sums);
+                    } else {
+                        gather::accumulate_many::<false>(
+                            vals, start, end, positions, normals, sums,
+                        );
                     }
                     start = end;
                 }
@@ -740,11 +733,14 @@ impl LightSkin {
         let epsilon_weight = self.epsilon_weight();
         let vals = &self.vals;
         let sums = &self.sums;
-        let occluders = occlusion::Occluders {
-            positions: &self.points.positions,
-            normals: &self.points.normals,
-            radius_sq: &self.points.radius_sq,
-        };
+        let mut occluders = std::mem::take(&mut self.occluders);
+        occluders.fill(
+            &self.points.positions,
+            &self.points.normals,
+            &self.points.radius_sq,
+        );
+        let positions = &self.points.positions;
+        let normals = &self.points.normals;
         self.occlusion
             .par_iter_mut()
             .zip(self.light_radius.par_iter_mut())
@@ -758,8 +754,15 @@ impl LightSkin {
                 let (centre, light_radius) =
                     Self::averaged_light(&sums[index], epsilon_weight, vals);
                 *radius = light_radius;
-                *occluded = occlusion::occluded_fraction(&occluders, index, centre, light_radius);
+                *occluded = occlusion::occluded_fraction(
+                    &occluders,
+                    positions[index],
+                    normals[index],
+                    centre,
+                    light_radius,
+                );
             });
+        self.occluders = occluders;
     }
 
     fn interpolate(&mut self) {
@@ -897,6 +900,7 @@ impl Technique for LightSkin {
                 &mut vals,
             );
             vals.extend(&self.point_cloud);
+            vals.limit_to(self.params.vals as usize);
             vals.pad();
             self.vals = vals;
         });
@@ -1019,7 +1023,10 @@ impl Technique for LightSkin {
     fn memory(&self) -> Vec<MemoryEntry> {
         let sums = std::mem::size_of::<Sums>();
         let mut entries = vec![
-            MemoryEntry::new("VALs", self.vals.memory_bytes()),
+            MemoryEntry::new(
+                format!("VALs ({})", self.vals.count),
+                self.vals.memory_bytes(),
+            ),
             MemoryEntry::new(
                 "sparse points",
                 self.points.positions.len() * (12 + 12 + 4 + 4),
@@ -1027,7 +1034,8 @@ impl Technique for LightSkin {
             MemoryEntry::new(
                 "gathered sums",
                 (self.sums.len() + self.glossy_sums.len()) * sums
-                    + (self.light_radius.len() + self.occlusion.len()) * 4,
+                    + (self.light_radius.len() + self.occlusion.len()) * 4
+                    + self.occluders.memory_bytes(),
             ),
             MemoryEntry::new(
                 "sparse point lights",

@@ -20,6 +20,9 @@ pub const LANES: usize = 8;
 /// one grazing texel does not become a huge soft light.
 const MAX_GRAZING_STRETCH: f32 = 5.0;
 
+/// Columns of [`Vals`].
+const COLUMNS: usize = 14;
+
 /// One virtual area light before it is stored in [`Vals`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Val {
@@ -51,6 +54,10 @@ pub struct Vals {
     pub power_luminance: Vec<f32>,
     /// Disc radius squared, r^2 = area / pi.
     pub radius_sq: Vec<f32>,
+    /// Squared coordinates, so that the spread sums cost one FMA per axis.
+    pub px_sq: Vec<f32>,
+    pub py_sq: Vec<f32>,
+    pub pz_sq: Vec<f32>,
     /// VALs that are real (the rest is padding).
     pub count: usize,
     /// Sums over the real VALs of position and position squared, for the
@@ -70,7 +77,7 @@ impl Vals {
         self.position_square_sum = [0.0; 3];
     }
 
-    fn columns_mut(&mut self) -> [&mut Vec<f32>; 11] {
+    fn columns_mut(&mut self) -> [&mut Vec<f32>; COLUMNS] {
         [
             &mut self.px,
             &mut self.py,
@@ -83,6 +90,9 @@ impl Vals {
             &mut self.power_b,
             &mut self.power_luminance,
             &mut self.radius_sq,
+            &mut self.px_sq,
+            &mut self.py_sq,
+            &mut self.pz_sq,
         ]
     }
 
@@ -100,6 +110,9 @@ impl Vals {
             self.power_b.push(val.power_over_pi.z);
             self.power_luminance.push(luminance(val.power_over_pi));
             self.radius_sq.push(val.area * FRAC_1_PI);
+            self.px_sq.push(val.position.x * val.position.x);
+            self.py_sq.push(val.position.y * val.position.y);
+            self.pz_sq.push(val.position.z * val.position.z);
             for axis in 0..3 {
                 let coordinate = val.position[axis] as f64;
                 self.position_sum[axis] += coordinate;
@@ -129,7 +142,31 @@ impl Vals {
                 column.push(0.0);
             }
             self.radius_sq.push(1.0);
+            self.px_sq.push(1e12);
+            self.py_sq.push(1e12);
+            self.pz_sq.push(1e12);
         }
+    }
+
+    /// Keeps exactly `budget` of the real VALs (when there are more), every
+    /// (count / budget)-th, their power scaled by count / budget so that the
+    /// total flux is unchanged: a fixed per-frame cost whatever the lights.
+    /// Call before [`Vals::pad`].
+    pub fn limit_to(&mut self, budget: usize) {
+        if budget == 0 || self.count <= budget {
+            return;
+        }
+        let all: Vec<Val> = (0..self.count).map(|index| self.get(index)).collect();
+        let scale = self.count as f32 / budget as f32;
+        let kept: Vec<Val> = (0..budget)
+            .map(|index| {
+                let mut val = all[index * all.len() / budget];
+                val.power_over_pi *= scale;
+                val
+            })
+            .collect();
+        self.clear();
+        self.extend(&kept);
     }
 
     pub fn padded_len(&self) -> usize {
@@ -150,7 +187,7 @@ impl Vals {
     }
 
     pub fn memory_bytes(&self) -> usize {
-        self.px.capacity() * 4 * 11
+        self.px.capacity() * 4 * COLUMNS
     }
 
     /// Total re-emitted flux (W), for conservation checks.
