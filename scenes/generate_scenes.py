@@ -305,8 +305,46 @@ radiance = [0.0, 0.0, 0.0]
     write("two-rooms", obj, "Two rooms joined by a doorway, metres.", materials, scene)
 
 
+def moving_box():
+    """A box floating through the point-lit Cornell box (LightSkin's moving
+    meshes). Lives under sequences/ so that `relight demo`, which compares
+    static scenes with the path tracer, does not pick it up."""
+    folder = HERE / "sequences" / "moving-box"
+    folder.mkdir(parents=True, exist_ok=True)
+    obj = Obj("box.mtl")
+    obj.group("box", "orange")
+    obj.cuboid([-0.05, -0.05, -0.05], [0.05, 0.05, 0.05])
+    (folder / "box.obj").write_text(obj.text("A 10 cm cube centred on its origin, metres."))
+    write_mtl(folder / "box.mtl", {"orange": {"Kd": [0.8, 0.45, 0.1]}})
+    scene = f"""# The point-lit Cornell box with an orange box floating across it, above
+# the blocks and below the light, turning as it goes: render a sequence with
+#   relight render scenes/sequences/moving-box/scene.toml -t lightskin --frames 8 -o box.png
+mesh = "../../cornell-box-point/mesh.obj"
+
+{CORNELL_CAMERA}
+[[lights]]
+kind = "point"
+position = [0.278, 0.5, 0.2795]
+intensity = [0.25, 0.2125, 0.15]
+
+[environment]
+radiance = [0.0, 0.0, 0.0]
+
+[[dynamic]]
+mesh = "box.obj"
+translation = [0.08, 0.4, 0.28]
+rotation = [0.0, 0.0, 0.0]
+# metres and degrees per frame
+velocity = [0.05, 0.0, 0.0]
+spin = [0.0, 10.0, 0.0]
+"""
+    (folder / "scene.toml").write_text(scene)
+    print(f"sequences/moving-box: {obj.triangles} triangles")
+
+
 if __name__ == "__main__":
     cornell_box()
     cornell_box_point()
     corridor()
     two_rooms()
+    moving_box()

@@ -109,6 +109,10 @@ enum Command {
         exposure: Option<f32>,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Render a sequence of this many frames (moving meshes move; files
+        /// get the frame number before the extension: out-0003.png).
+        #[arg(long, default_value_t = 1)]
+        frames: u32,
         #[arg(short, long)]
         output: PathBuf,
     },
@@ -244,6 +248,19 @@ fn load_context(path: &Path, options: &SceneOptions, quiet: bool) -> Result<Arc<
 }
 
 /// Creates a technique, baking in memory or reading `--bake` as needed.
+/// `out.png` with frame 3 -> `out-0003.png`.
+fn numbered_path(path: &std::path::Path, index: u32) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map(|stem| stem.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let name = match path.extension() {
+        Some(extension) => format!("{stem}-{index:04}.{}", extension.to_string_lossy()),
+        None => format!("{stem}-{index:04}"),
+    };
+    path.with_file_name(name)
+}
+
 fn create_technique(
     context: &Arc<SceneContext>,
     options: &TechniqueOptions,
@@ -342,11 +359,49 @@ fn run(cli: Cli) -> Result<()> {
             indirect_only,
             exposure,
             seed,
+            frames,
             output,
         } => {
             let context = load_context(&scene, &options, quiet)?;
             let lights = context.scene.lights.clone();
             let bars = Bars::new(quiet);
+            if frames > 1 {
+                if technique.technique == "reference" {
+                    bail!("--frames renders a technique's sequence; the reference renders one frame of the static scene");
+                }
+                let mut instance = create_technique(&context, &technique, quiet)?;
+                // One exposure for the whole sequence so that frames compare.
+                let mut sequence_exposure = exposure;
+                for index in 0..frames {
+                    instance.update(&Frame {
+                        lights: &lights,
+                        index: index as u64,
+                    })?;
+                    let frame_context = instance
+                        .frame_geometry()
+                        .map(|scene| context.with_frame_geometry(scene));
+                    let renders = relight_render::render::render_with_technique(
+                        frame_context.as_ref().unwrap_or(&context),
+                        &lights,
+                        instance.as_ref(),
+                        spp,
+                        seed,
+                        &bars,
+                    );
+                    let image = if indirect_only {
+                        &renders.indirect
+                    } else {
+                        &renders.full
+                    };
+                    let exposure = *sequence_exposure.get_or_insert_with(|| image.auto_exposure());
+                    let path = numbered_path(&output, index);
+                    image.write(&path, Some(exposure))?;
+                    if !quiet {
+                        eprintln!("wrote {}", path.display());
+                    }
+                }
+                return Ok(());
+            }
             let renders = if technique.technique == "reference" {
                 if technique.bake.is_some() || !technique.set.is_empty() {
                     bail!("--technique reference takes no --bake or --set; use --spp, --max-bounces and --seed");

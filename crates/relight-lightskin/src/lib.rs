@@ -1012,6 +1012,12 @@ impl Technique for LightSkin {
         )
     }
 
+    fn frame_geometry(&self) -> Option<Scene> {
+        self.dynamic_world
+            .as_ref()
+            .map(|world| world.merged_into(&self.context.scene))
+    }
+
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
         Some(&self.receiver_irradiance)
     }

@@ -44,6 +44,26 @@ impl SceneContext {
         })
     }
 
+    /// The same context over `scene`, whose first triangles are this
+    /// context's static triangles and whose rest are moving meshes placed
+    /// for one frame (see [`crate::Technique::frame_geometry`]): BVH and
+    /// emitters are rebuilt, the lightmap atlas of the static part is kept.
+    pub fn with_frame_geometry(&self, scene: Scene) -> Self {
+        let start = Instant::now();
+        let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
+        let bvh_build_time = start.elapsed();
+        let emitters = Emitters::from_scene(&scene);
+        Self {
+            scene,
+            bvh,
+            atlas: self.atlas.clone(),
+            emitters,
+            settings: self.settings,
+            bvh_build_time,
+            atlas_build_time: Duration::ZERO,
+        }
+    }
+
     /// What a bake made for this scene and lightmap records, and is checked
     /// against when loaded.
     pub fn fingerprint(&self) -> u64 {

@@ -109,6 +109,14 @@ pub trait Technique: Send + Sync {
         None
     }
 
+    /// The scene as the last update saw it when the technique moves meshes
+    /// (the static triangles first, in their order, then the moving ones):
+    /// renderers trace this instead of the static scene. `None` for
+    /// techniques of static scenes.
+    fn frame_geometry(&self) -> Option<relight_scene::Scene> {
+        None
+    }
+
     /// Indirect irradiance per lightmap receiver after the last update, in
     /// the atlas's receiver order, when the technique stores a lightmap.
     fn receiver_irradiance(&self) -> Option<&[Rgb]>;
