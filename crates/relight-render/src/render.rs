@@ -167,12 +167,23 @@ pub fn render_with_technique(
                 // The lightmap holds the front side; the back of thin geometry
                 // asks the technique as a point in space.
                 let indirect = if seen_from_front {
-                    technique.indirect_irradiance(&SurfacePoint {
+                    let point = SurfacePoint {
                         position,
                         normal,
                         triangle: hit.triangle,
                         barycentric: hit.barycentric,
-                    })
+                    };
+                    // Glossy materials add the technique's view-dependent
+                    // indirect reflection when it models one.
+                    let exponent = scene.material_of(triangle).phong_exponent;
+                    if exponent > 1.0 {
+                        if let Some(glossy) =
+                            technique.glossy_radiance(&point, -ray.direction.normalize(), exponent)
+                        {
+                            indirect_sum += glossy;
+                        }
+                    }
+                    technique.indirect_irradiance(&point)
                 } else {
                     technique.indirect_irradiance_in_space(position, normal)
                 };

@@ -1,0 +1,697 @@
+//! LightSkin: the disc form factor against numerical integration, the
+//! kernels against their portable forms, renormalisation, interpolation
+//! weights, flux conservation of the reflective shadow maps, moving meshes,
+//! point clouds, determinism, and accuracy against the path tracer limited
+//! to one indirect bounce.
+
+use glam::Vec3;
+use relight_core::Rgb;
+use relight_lightskin::gather::{accumulate, accumulate_portable, Sums};
+use relight_lightskin::occlusion::{occluded_fraction, occluded_fraction_portable, Occluders};
+use relight_lightskin::points::interpolation_weights;
+use relight_lightskin::vals::{Val, Vals};
+use relight_lightskin::{phong_diffuse, LightSkin, LightSkinKind, LightSkinParams};
+use relight_render::metrics::{error_norms, relative_noise};
+use relight_render::render::{render_reference, render_with_technique};
+use relight_scene::atlas::TexelDensity;
+use relight_scene::{Light, Scene};
+use relight_technique::{
+    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, Technique,
+    TechniqueKind,
+};
+use relight_trace::path::PathSettings;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+fn scene_path(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../scenes")
+        .join(name)
+        .join("scene.toml")
+}
+
+fn context_of(scene: Scene, lightmap: TexelDensity) -> Arc<SceneContext> {
+    let settings = ContextSettings {
+        lightmap,
+        ..ContextSettings::default()
+    };
+    Arc::new(SceneContext::new(scene, settings).unwrap())
+}
+
+fn shipped(name: &str) -> Arc<SceneContext> {
+    context_of(
+        relight_scene::load_scene(&scene_path(name)).expect("shipped scene loads"),
+        TexelDensity::default(),
+    )
+}
+
+fn updated(context: &Arc<SceneContext>, params: LightSkinParams) -> LightSkin {
+    let mut technique = LightSkin::new(context.clone(), params).unwrap();
+    let lights = context.scene.lights.clone();
+    technique
+        .update(&Frame {
+            lights: &lights,
+            index: 0,
+        })
+        .unwrap();
+    technique
+}
+
+fn single_val(position: Vec3, normal: Vec3, power_over_pi: Rgb, area: f32) -> Vals {
+    let mut vals = Vals::default();
+    vals.extend(&[Val {
+        position,
+        normal,
+        power_over_pi,
+        area,
+    }]);
+    vals.pad();
+    vals
+}
+
+/// Irradiance at `receiver` (normal `normal`) from a Lambertian disc of
+/// radiance `radiance`, centre `centre`, normal `disc_normal`, radius
+/// `radius`, by the midpoint rule on a fine polar grid.
+fn disc_irradiance_numerically(
+    receiver: Vec3,
+    normal: Vec3,
+    centre: Vec3,
+    disc_normal: Vec3,
+    radius: f32,
+    radiance: f64,
+) -> f64 {
+    let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(disc_normal);
+    let rings = 400;
+    let sectors = 800;
+    let mut irradiance = 0.0f64;
+    for ring in 0..rings {
+        let r0 = radius as f64 * ring as f64 / rings as f64;
+        let r1 = radius as f64 * (ring + 1) as f64 / rings as f64;
+        let r = 0.5 * (r0 + r1);
+        let ring_area = std::f64::consts::PI * (r1 * r1 - r0 * r0) / sectors as f64;
+        for sector in 0..sectors {
+            let angle = std::f64::consts::TAU * (sector as f64 + 0.5) / sectors as f64;
+            let point =
+                centre + tangent * (r * angle.cos()) as f32 + bitangent * (r * angle.sin()) as f32;
+            let to_receiver = (receiver - point).as_dvec3();
+            let distance_sq = to_receiver.length_squared();
+            let direction = to_receiver / distance_sq.sqrt();
+            let cos_disc = direction.dot(disc_normal.as_dvec3()).max(0.0);
+            let cos_receiver = (-direction).dot(normal.as_dvec3()).max(0.0);
+            irradiance += radiance * cos_disc * cos_receiver / distance_sq * ring_area;
+        }
+    }
+    irradiance
+}
+
+#[test]
+fn disc_form_factor_is_exact_on_axis_and_close_off_axis() {
+    let radius = 0.1f32;
+    let area = std::f32::consts::PI * radius * radius;
+    let radiance = 2.0f32;
+    // A Lambertian disc of radiance L emits pi L A; the kernel's power over
+    // pi is therefore L A.
+    let power = Rgb::splat(radiance * area);
+    let centre = Vec3::ZERO;
+    let disc_normal = Vec3::Y;
+    let vals = single_val(centre, disc_normal, power, area);
+    let kernel = |receiver: Vec3, normal: Vec3| {
+        let mut sums = Sums::default();
+        accumulate_portable::<false>(&vals, 0, vals.padded_len(), receiver, normal, &mut sums);
+        sums.irradiance[0] as f64
+    };
+    // On the axis, facing the disc: r^2 / (r^2 + d^2) is the exact form
+    // factor, so only the quadrature's error (well below 1e-3) remains.
+    for distance in [0.05f32, 0.1, 0.3, 1.0] {
+        let receiver = Vec3::new(0.0, distance, 0.0);
+        let exact = disc_irradiance_numerically(
+            receiver,
+            -Vec3::Y,
+            centre,
+            disc_normal,
+            radius,
+            radiance as f64,
+        );
+        let formula = kernel(receiver, -Vec3::Y);
+        assert!(
+            (formula - exact).abs() / exact < 1e-3,
+            "on axis at {distance}: formula {formula}, integral {exact}"
+        );
+    }
+    // Off the axis the formula treats the disc as seen from its centre:
+    // its relative error is second order in r/d (measured: 0.8 to 1.8
+    // times (r/d)^2 at 3 to 15 radii, tilted receivers included), so the
+    // bound is 2 (r/d)^2; this is why VALs are small (one RSM texel).
+    for (offset, tilt) in [(0.3f32, 0.0f32), (0.5, 0.4), (0.8, -0.3), (1.5, 0.2)] {
+        let receiver = Vec3::new(offset, 0.3 + 0.2 * offset, 0.1);
+        let normal = (centre - receiver)
+            .normalize()
+            .lerp(Vec3::X * tilt.signum(), tilt.abs())
+            .normalize();
+        let exact = disc_irradiance_numerically(
+            receiver,
+            normal,
+            centre,
+            disc_normal,
+            radius,
+            radiance as f64,
+        );
+        let formula = kernel(receiver, normal);
+        let bound = 2.0 * (radius / receiver.length()).powi(2) as f64;
+        assert!(
+            (formula - exact).abs() / exact < bound,
+            "off axis at {receiver}: formula {formula}, integral {exact}, bound {bound}"
+        );
+    }
+}
+
+fn random_vals(count: usize) -> Vals {
+    let mut rng = relight_core::sampling::Pcg32::new(7, 1);
+    let vals: Vec<Val> = (0..count)
+        .map(|_| {
+            let position = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0;
+            let normal = relight_core::sampling::uniform_sphere(rng.next_vec2());
+            Val {
+                position,
+                normal,
+                power_over_pi: Rgb::new(rng.next_f32(), rng.next_f32(), rng.next_f32()),
+                area: 1e-3 * (1.0 + rng.next_f32()),
+            }
+        })
+        .collect();
+    let mut packed = Vals::default();
+    packed.extend(&vals);
+    packed.pad();
+    packed
+}
+
+#[test]
+fn simd_gathering_matches_portable_gathering() {
+    let vals = random_vals(1003);
+    let mut rng = relight_core::sampling::Pcg32::new(9, 2);
+    for _ in 0..50 {
+        let position = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0;
+        let normal = relight_core::sampling::uniform_sphere(rng.next_vec2());
+        let mut fast = Sums::default();
+        let mut portable = Sums::default();
+        accumulate::<true>(&vals, 0, vals.padded_len(), position, normal, &mut fast);
+        accumulate_portable::<true>(&vals, 0, vals.padded_len(), position, normal, &mut portable);
+        // The SIMD kernel uses the hardware reciprocal estimate (relative
+        // error below 1.5 * 2^-12 = 3.7e-4 per term) and sums in another
+        // order; 1e-3 of the total bounds both.
+        let close = |a: f32, b: f32, scale: f32| (a - b).abs() <= 1e-3 * scale.abs().max(1e-12);
+        for channel in 0..3 {
+            assert!(close(
+                fast.irradiance[channel],
+                portable.irradiance[channel],
+                portable.irradiance[channel]
+            ));
+            let scale = portable.weighted_position[channel]
+                .abs()
+                .max(portable.weight);
+            assert!(close(
+                fast.weighted_position[channel],
+                portable.weighted_position[channel],
+                scale
+            ));
+            let scale = portable.weighted_square[channel].abs().max(portable.weight);
+            assert!(close(
+                fast.weighted_square[channel],
+                portable.weighted_square[channel],
+                scale
+            ));
+        }
+        assert!(close(fast.weight, portable.weight, portable.weight));
+    }
+}
+
+#[test]
+fn simd_occlusion_matches_portable_occlusion() {
+    let context = shipped("cornell-box-point");
+    let technique = updated(&context, LightSkinParams::default());
+    let points = technique.sparse_points();
+    let normals: Vec<Vec3> = (0..points.len())
+        .map(|i| technique.sparse_point_normal(i))
+        .collect();
+    let mut occluders = Occluders::default();
+    occluders.fill(points, &normals, &vec![2e-5; points.len()]);
+    let mut compared = 0;
+    for index in (0..points.len()).step_by(37) {
+        let (_, light, _) = technique.sparse_point_light(index);
+        let fast = occluded_fraction(&occluders, points[index], normals[index], light, 0.1);
+        let portable =
+            occluded_fraction_portable(&occluders, points[index], normals[index], light, 0.1);
+        // rsqrt and rcp estimates (12 bits) in distances, cosines and
+        // square sides: 1 % of the fraction, or 1e-3 absolute.
+        assert!(
+            (fast - portable).abs() <= 1e-3 + 0.01 * portable,
+            "point {index}: simd {fast}, portable {portable}"
+        );
+        compared += usize::from(portable > 0.0);
+    }
+    assert!(
+        compared > 10,
+        "too few occluded points to compare ({compared})"
+    );
+}
+
+#[test]
+fn averaged_light_follows_the_bright_val() {
+    // Two VALs at equal distance on either side of the receiver's normal;
+    // the paper's geometric weights would put the light halfway. Weighted
+    // by delivered luminance it sits next to the bright one.
+    let mut vals = Vals::default();
+    let bright = Val {
+        position: Vec3::new(-0.5, 1.0, 0.0),
+        normal: -Vec3::Y,
+        power_over_pi: Rgb::splat(1.0),
+        area: 1e-3,
+    };
+    let dark = Val {
+        position: Vec3::new(0.5, 1.0, 0.0),
+        power_over_pi: Rgb::splat(0.01),
+        ..bright
+    };
+    vals.extend(&[bright, dark]);
+    vals.pad();
+    let mut sums = Sums::default();
+    accumulate_portable::<false>(&vals, 0, vals.padded_len(), Vec3::ZERO, Vec3::Y, &mut sums);
+    let averaged_x = sums.weighted_position[0] / sums.weight;
+    assert!(
+        (averaged_x - (-0.5 + 1.0 / 101.0)).abs() < 1e-4,
+        "averaged x {averaged_x}"
+    );
+}
+
+#[test]
+fn renormalised_lights_reproduce_the_gathered_irradiance_at_sparse_points() {
+    let context = shipped("cornell-box-point");
+    let technique = updated(&context, LightSkinParams::default());
+    let points = technique.sparse_points();
+    let mut checked = 0;
+    for (index, &point) in points.iter().enumerate() {
+        let (irradiance, light, power) = technique.sparse_point_light(index);
+        let normal = technique.sparse_point_normal(index);
+        let to_light = light - point;
+        // Equation 11 clamps the cosine at 0.02; the identity holds above it.
+        if irradiance.max_element() <= 0.0 || normal.dot(to_light.normalize()) <= 0.02 {
+            continue;
+        }
+        let shaded = phong_diffuse(power, light, point, normal);
+        for channel in 0..3 {
+            assert!(
+                (shaded[channel] - irradiance[channel]).abs() <= 1e-4 * irradiance[channel],
+                "point {index}: L_phong(L'', l') = {shaded}, L' = {irradiance}"
+            );
+        }
+        checked += 1;
+    }
+    assert!(checked > points.len() / 2, "only {checked} points checked");
+}
+
+#[test]
+fn interpolation_weights_follow_equation_12() {
+    let normal = Vec3::Y;
+    let tilted = Vec3::new(0.6, 0.8, 0.0);
+    let neighbours = [
+        (4, 0.1, Vec3::Y),
+        (7, 0.2, tilted),
+        (9, 0.4, Vec3::Y),
+        (2, 0.3, -Vec3::Y),
+    ];
+    let (indices, weights) = interpolation_weights(normal, &neighbours);
+    // (1 - d/d_max) * clamp(n.n): 0.75, 0.5 * 0.8, 0 (farthest), 0 (facing away).
+    let raw = [0.75f32, 0.4, 0.0, 0.0];
+    let total: f32 = raw.iter().sum();
+    assert_eq!(&indices[..4], &[4, 7, 9, 2]);
+    for slot in 0..4 {
+        assert!(
+            (weights[slot] - raw[slot] / total).abs() < 1e-6,
+            "slot {slot}: {}",
+            weights[slot]
+        );
+    }
+    assert!(weights[4..].iter().all(|&w| w == 0.0));
+    // All at one distance: equation 12 gives zero everywhere; the fallback
+    // shares by normal agreement.
+    let (_, weights) = interpolation_weights(normal, &[(0, 0.2, Vec3::Y), (1, 0.2, tilted)]);
+    assert!((weights[0] - 1.0 / 1.8).abs() < 1e-6 && (weights[1] - 0.8 / 1.8).abs() < 1e-6);
+    // No neighbour: nothing.
+    let (_, weights) = interpolation_weights(normal, &[]);
+    assert!(weights.iter().all(|&w| w == 0.0));
+}
+
+/// A closed cube of side 2 around the origin, all faces inward, one albedo.
+fn closed_cube(albedo: f32, light: Light) -> Scene {
+    let mut scene = Scene::default();
+    let corners = |axis: usize, side: f32| {
+        let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+        let mut quad = [Vec3::ZERO; 4];
+        for (k, (a, b)) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+            .into_iter()
+            .enumerate()
+        {
+            quad[k][axis] = side;
+            quad[k][u] = a;
+            quad[k][v] = b;
+        }
+        quad
+    };
+    for axis in 0..3 {
+        for side in [-1.0f32, 1.0] {
+            let quad = corners(axis, side);
+            let first = scene.mesh.positions.len() as u32;
+            scene.mesh.positions.extend_from_slice(&quad);
+            let inward = -Vec3::from_array({
+                let mut n = [0.0; 3];
+                n[axis] = side;
+                n
+            });
+            let mut triangles = [[first, first + 1, first + 2], [first, first + 2, first + 3]];
+            let normal = (quad[1] - quad[0]).cross(quad[2] - quad[0]);
+            if normal.dot(inward) < 0.0 {
+                triangles = [[first, first + 2, first + 1], [first, first + 3, first + 2]];
+            }
+            scene.mesh.triangles.extend_from_slice(&triangles);
+            scene.mesh.material_ids.extend_from_slice(&[0, 0]);
+        }
+    }
+    scene.materials.push(relight_scene::Material {
+        albedo: Rgb::splat(albedo),
+        ..Default::default()
+    });
+    scene.lights.push(light);
+    scene
+}
+
+#[test]
+fn reflective_shadow_maps_conserve_flux() {
+    // Every ray from a point light inside a closed cube hits a wall, so the
+    // VALs re-emit albedo * 4 pi I; the texel solid angles are a midpoint
+    // rule of the exact cube-face integral (error far below 0.1 %).
+    let intensity = 3.0f32;
+    let albedo = 0.6f32;
+    let scene = closed_cube(
+        albedo,
+        Light::Point {
+            position: Vec3::new(0.1, -0.2, 0.3),
+            intensity: Rgb::splat(intensity),
+        },
+    );
+    let context = context_of(scene, TexelDensity::TargetResolution(32));
+    let technique = updated(&context, LightSkinParams::default());
+    let expected = albedo * 4.0 * std::f32::consts::PI * intensity;
+    let total = technique.vals().total_power();
+    assert_eq!(technique.vals().count, 6 * 48 * 48);
+    assert!(
+        (total.x - expected).abs() / expected < 1e-3,
+        "VAL power {total}, expected {expected}"
+    );
+    // A directional light from above hits the cube's top from outside:
+    // the VALs re-emit albedo times the irradiance times the top's area (4).
+    let scene = closed_cube(
+        albedo,
+        Light::Directional {
+            direction: -Vec3::Y,
+            irradiance: Rgb::splat(2.0),
+        },
+    );
+    let context = context_of(scene, TexelDensity::TargetResolution(32));
+    let technique = updated(&context, LightSkinParams::default());
+    let total = technique.vals().total_power();
+    let expected = albedo * 2.0 * 4.0;
+    // Texel centres decide coverage: 28 texels of 7.2 cm cover 2.02 m of
+    // the 2 m face per side, about 2 % more area.
+    assert!(
+        (total.x - expected).abs() / expected < 0.04,
+        "VAL power {total}, expected {expected}"
+    );
+}
+
+#[test]
+fn gathering_is_deterministic_across_thread_counts() {
+    let context = shipped("corridor");
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let technique = updated(&context, LightSkinParams::default());
+            technique.receiver_irradiance().unwrap().to_vec()
+        })
+    };
+    let one = run(1);
+    let two = run(2);
+    assert!(one
+        .iter()
+        .zip(&two)
+        .all(|(a, b)| a.to_array().map(f32::to_bits) == b.to_array().map(f32::to_bits)));
+}
+
+#[test]
+fn moving_box_changes_the_indirect_light_on_the_floor() {
+    let scene = relight_scene::load_scene(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/sequences/moving-box/scene.toml"),
+    )
+    .unwrap();
+    let context = context_of(scene, TexelDensity::default());
+    let mut technique = LightSkinKind
+        .create(context.clone(), None, &[], &NoProgress)
+        .unwrap();
+    let lights = context.scene.lights.clone();
+    let receivers = &context.atlas.receivers;
+    let floor: Vec<usize> = (0..receivers.len())
+        .filter(|&i| receivers.normals[i].y > 0.99 && receivers.positions[i].y < 0.01)
+        .collect();
+    assert!(floor.len() > 100);
+    let mut floor_light = Vec::new();
+    for index in [0u64, 3, 7] {
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index,
+            })
+            .unwrap();
+        let irradiance = technique.receiver_irradiance().unwrap();
+        floor_light.push(floor.iter().map(|&i| irradiance[i]).collect::<Vec<Rgb>>());
+        // The box is traced by the renderer and receives indirect light
+        // on its underside, which no direct light reaches.
+        let merged = technique.frame_geometry().expect("moving meshes placed");
+        assert_eq!(
+            merged.mesh.triangles.len(),
+            context.scene.mesh.triangles.len() + 12
+        );
+        let first_box_triangle = context.scene.mesh.triangles.len();
+        let underside = (first_box_triangle..merged.mesh.triangles.len())
+            .find(|&t| merged.mesh.geometric_normal(t).y < -0.99)
+            .unwrap();
+        let [a, b, c] = merged.mesh.vertices(underside);
+        let point = relight_technique::SurfacePoint {
+            position: (a + b + c) / 3.0,
+            normal: -Vec3::Y,
+            triangle: underside as u32,
+            barycentric: glam::Vec2::splat(1.0 / 3.0),
+        };
+        assert!(technique.indirect_irradiance(&point).max_element() > 0.0);
+    }
+    // The floor's indirect light changes where the box's shadow moves (the
+    // lit area that re-emits moves with it): some texels by over 5 %.
+    let changed = |a: &[Rgb], b: &[Rgb]| {
+        a.iter()
+            .zip(b)
+            .filter(|(x, y)| (x.x - y.x).abs() > 0.05 * x.x.max(y.x))
+            .count()
+    };
+    assert!(changed(&floor_light[0], &floor_light[1]) > floor.len() / 50);
+    assert!(changed(&floor_light[1], &floor_light[2]) > floor.len() / 50);
+}
+
+const PLY_ASCII: &str = "ply
+format ascii 1.0
+comment two points of a captured wall
+element vertex 2
+property float x
+property float y
+property float z
+property float nx
+property float ny
+property float nz
+property uchar red
+property uchar green
+property uchar blue
+property float radius
+end_header
+0.1 0.2 0.3 0 0 1 255 128 0 0.01
+0.4 0.5 0.6 0 1 0 10 20 30 0.02
+";
+
+#[test]
+fn point_clouds_read_in_ascii_and_binary_and_refuse_bad_files() {
+    let path = Path::new("capture.ply");
+    let ascii = relight_lightskin::ply::parse_point_cloud(path, PLY_ASCII.as_bytes()).unwrap();
+    assert_eq!(ascii.len(), 2);
+    assert_eq!(ascii[1].position, Vec3::new(0.4, 0.5, 0.6));
+    assert_eq!(ascii[0].colour.x, 1.0);
+    assert_eq!(ascii[1].radius, Some(0.02));
+    // The same points, binary little-endian.
+    let header = PLY_ASCII
+        .split("end_header\n")
+        .next()
+        .unwrap()
+        .replace("ascii", "binary_little_endian");
+    let mut binary = format!("{header}end_header\n").into_bytes();
+    for point in [
+        (
+            0.1f32,
+            0.2f32,
+            0.3f32,
+            [0f32, 0., 1.],
+            [255u8, 128, 0],
+            0.01f32,
+        ),
+        (0.4, 0.5, 0.6, [0., 1., 0.], [10, 20, 30], 0.02),
+    ] {
+        for value in [
+            point.0, point.1, point.2, point.3[0], point.3[1], point.3[2],
+        ] {
+            binary.extend_from_slice(&value.to_le_bytes());
+        }
+        binary.extend_from_slice(&point.4);
+        binary.extend_from_slice(&point.5.to_le_bytes());
+    }
+    let parsed = relight_lightskin::ply::parse_point_cloud(path, &binary).unwrap();
+    assert_eq!(parsed, ascii);
+    // Truncated binary data, a missing property and a non-PLY file are
+    // errors that say what is wrong.
+    let truncated = relight_lightskin::ply::parse_point_cloud(path, &binary[..binary.len() - 5]);
+    assert!(truncated.unwrap_err().to_string().contains("truncated"));
+    let missing = PLY_ASCII.replace("property float nz\n", "");
+    let missing = relight_lightskin::ply::parse_point_cloud(path, missing.as_bytes());
+    assert!(missing.unwrap_err().to_string().contains("`nz`"));
+    let not_ply = relight_lightskin::ply::parse_point_cloud(path, b"solid cube\nend_header\n");
+    assert!(not_ply.unwrap_err().to_string().contains("line 1"));
+    // Each point is a disc of radiance colour * scale: power over pi = L A.
+    let vals = relight_lightskin::ply::point_cloud_vals(&ascii, 2.0);
+    let area = std::f32::consts::PI * 0.01 * 0.01;
+    assert!((vals[0].power_over_pi.x - 2.0 * area).abs() < 1e-9);
+}
+
+#[test]
+fn a_point_cloud_lights_the_scene() {
+    // A bright captured patch facing down into the unlit Cornell box (its
+    // light switched off) is the only source of indirect light.
+    let mut scene = relight_scene::load_scene(&scene_path("cornell-box-point")).unwrap();
+    scene.lights.clear();
+    let folder = std::env::temp_dir().join(format!("relight-lightskin-ply-{}", std::process::id()));
+    std::fs::create_dir_all(&folder).unwrap();
+    let mut text = String::from("ply\nformat ascii 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n");
+    for i in 0..10 {
+        for j in 0..10 {
+            text += &format!(
+                "{} 0.5 {} 0 -1 0 255 255 255\n",
+                0.23 + 0.01 * i as f32,
+                0.23 + 0.01 * j as f32
+            );
+        }
+    }
+    std::fs::write(folder.join("patch.ply"), text).unwrap();
+    scene.source = folder.join("scene.toml");
+    let context = context_of(scene, TexelDensity::default());
+    let params = [("point_cloud".to_string(), "\"patch.ply\"".to_string())];
+    let mut technique = LightSkinKind
+        .create(context.clone(), None, &params, &NoProgress)
+        .unwrap();
+    technique
+        .update(&Frame {
+            lights: &[],
+            index: 0,
+        })
+        .unwrap();
+    let total: f32 = technique
+        .receiver_irradiance()
+        .unwrap()
+        .iter()
+        .map(|e| e.x)
+        .sum();
+    assert!(total > 0.0);
+    std::fs::remove_dir_all(&folder).ok();
+}
+
+/// Lightmap and indirect-image relRMSE of LightSkin against the path
+/// tracer limited to one indirect bounce (what LightSkin computes), and
+/// the references' own noise.
+fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
+    let mut scene = relight_scene::load_scene(&scene_path(scene_name)).unwrap();
+    // A small image keeps the reference's noise low at a test's cost.
+    let [width, height] = scene.camera.resolution;
+    scene.camera.resolution = [width / 4, height / 4];
+    let context = context_of(scene, TexelDensity::default());
+    let lights = context.scene.lights.clone();
+    let settings = PathSettings {
+        max_bounces: 1,
+        ..PathSettings::default()
+    };
+    let reference = reference_receiver_irradiance(&context, &lights, settings, 1024, &NoProgress);
+    let pairs: Vec<(String, String)> = params
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect();
+    let mut technique = LightSkinKind
+        .create(context.clone(), None, &pairs, &NoProgress)
+        .unwrap();
+    technique
+        .update(&Frame {
+            lights: &lights,
+            index: 0,
+        })
+        .unwrap();
+    let lightmap =
+        error_norms(technique.receiver_irradiance().unwrap(), &reference.mean).relative_rmse;
+    let reference_image = render_reference(&context, &lights, settings, 4096, &NoProgress);
+    let image = render_with_technique(&context, &lights, technique.as_ref(), 4, 1, &NoProgress);
+    let image_error =
+        error_norms(&image.indirect.pixels, &reference_image.indirect.pixels).relative_rmse;
+    (
+        lightmap,
+        relative_noise(&reference.mean, &reference.standard_error),
+        image_error,
+        relative_noise(
+            &reference_image.indirect.pixels,
+            &reference_image.indirect_standard_error.pixels,
+        ),
+    )
+}
+
+#[test]
+fn accuracy_within_twenty_percent_of_one_bounce_path_tracing() {
+    // The issue's bound: 20 % relRMSE of the indirect-only image with
+    // occlusion on, on the point-lit Cornell box and the corridor. The
+    // references' own noise (printed) is a few percent and adds to the
+    // measured error in quadrature, so the bound is met with that noise in.
+    for scene in ["cornell-box-point", "corridor"] {
+        let (lightmap, lightmap_noise, image, image_noise) = accuracy(scene, &[]);
+        println!(
+            "{scene}: lightmap {:.1} % (reference noise {:.1} %), image {:.1} % (reference noise {:.1} %)",
+            lightmap * 100.0,
+            lightmap_noise * 100.0,
+            image * 100.0,
+            image_noise * 100.0
+        );
+        assert!(lightmap_noise < 0.1 && image_noise < 0.1);
+        assert!(lightmap <= 0.20, "{scene}: lightmap relRMSE {lightmap}");
+        assert!(image <= 0.20, "{scene}: image relRMSE {image}");
+    }
+}
+
+#[test]
+fn occlusion_lowers_the_error() {
+    // Section 3.3 exists to darken what indirect light cannot reach; on the
+    // Cornell box (two blocks shadowing walls and floor) it must help.
+    let (with_occlusion, ..) = accuracy("cornell-box-point", &[]);
+    let (without, ..) = accuracy("cornell-box-point", &[("occlusion", "false")]);
+    assert!(
+        with_occlusion < without * 0.8,
+        "with {with_occlusion}, without {without}"
+    );
+}
