@@ -94,15 +94,39 @@ pub fn occluded_fraction(
     light_centre: Vec3,
     light_radius: f32,
 ) -> f32 {
+    let Some((light, area)) = light_quad(position, normal, light_centre, light_radius) else {
+        return 0.0;
+    };
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: AVX2 and FMA are present (checked above) and every
+            // column has the same, padded length.
+            let overlap = unsafe { overlap_avx2(occluders, &light) };
+            return (overlap / area).min(1.0);
+        }
+    }
+    (overlap_portable(occluders, &light) / area).min(1.0)
+}
+
+/// The light sphere as seen from the receiver, and its projected area;
+/// `None` when the light is at the receiver or behind its surface.
+fn light_quad(
+    position: Vec3,
+    normal: Vec3,
+    light_centre: Vec3,
+    light_radius: f32,
+) -> Option<(LightQuad, f32)> {
     let to_light = light_centre - position;
     let distance = to_light.length();
     if distance <= 1e-6 {
-        return 0.0;
+        return None;
     }
     let direction = to_light / distance;
     let cos_light = direction.dot(normal);
     if cos_light <= 0.0 {
-        return 0.0;
+        return None;
     }
     let radius = light_radius.max(1e-6);
     let radius_sq = radius * radius;
@@ -120,17 +144,7 @@ pub fn occluded_fraction(
         u: direction.dot(tangent),
         v: direction.dot(bitangent),
     };
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-        {
-            // SAFETY: AVX2 and FMA are present (checked above) and every
-            // column has the same, padded length.
-            let overlap = unsafe { overlap_avx2(occluders, &light) };
-            return (overlap / area).min(1.0);
-        }
-    }
-    (overlap_portable(occluders, &light) / area).min(1.0)
+    Some((light, area))
 }
 
 /// Summed, faded overlap of the occluders' squares with the light's square.
@@ -287,7 +301,7 @@ unsafe fn overlap_avx2(occluders: &Occluders, light: &LightQuad) -> f32 {
     lanes.iter().sum()
 }
 
-/// The portable overlap sum, for tests of the AVX2 form.
+/// [`occluded_fraction`] without SIMD, for tests of the AVX2 form.
 pub fn occluded_fraction_portable(
     occluders: &Occluders,
     position: Vec3,
@@ -295,27 +309,8 @@ pub fn occluded_fraction_portable(
     light_centre: Vec3,
     light_radius: f32,
 ) -> f32 {
-    let to_light = light_centre - position;
-    let distance = to_light.length();
-    let direction = to_light / distance;
-    let cos_light = direction.dot(normal);
-    if distance <= 1e-6 || cos_light <= 0.0 {
-        return 0.0;
+    match light_quad(position, normal, light_centre, light_radius) {
+        Some((light, area)) => (overlap_portable(occluders, &light) / area).min(1.0),
+        None => 0.0,
     }
-    let radius = light_radius.max(1e-6);
-    let area = std::f32::consts::PI * radius * radius / (radius * radius + distance * distance)
-        * cos_light;
-    let (tangent, bitangent) = orthonormal_basis(normal);
-    let light = LightQuad {
-        position,
-        normal,
-        tangent,
-        bitangent,
-        distance,
-        inverse_radius: 1.0 / radius,
-        half_side: 0.5 * area.sqrt(),
-        u: direction.dot(tangent),
-        v: direction.dot(bitangent),
-    };
-    (overlap_portable(occluders, &light) / area).min(1.0)
 }
