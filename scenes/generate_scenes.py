@@ -128,6 +128,16 @@ CORNELL_MATERIALS = {
     "green": {"Kd": [0.14, 0.45, 0.091]},
 }
 
+# One point light just under the ceiling's centre, in a black environment.
+CORNELL_POINT_LIGHT = """[[lights]]
+kind = "point"
+position = [0.278, 0.5, 0.2795]
+intensity = [0.25, 0.2125, 0.15]
+
+[environment]
+radiance = [0.0, 0.0, 0.0]
+"""
+
 CORNELL_CAMERA = """[camera]
 eye = [0.278, 0.273, -0.8]
 target = [0.278, 0.273, 0.0]
@@ -181,14 +191,7 @@ def cornell_box_point():
 mesh = "mesh.obj"
 
 {CORNELL_CAMERA}
-[[lights]]
-kind = "point"
-position = [0.278, 0.5, 0.2795]
-intensity = [0.25, 0.2125, 0.15]
-
-[environment]
-radiance = [0.0, 0.0, 0.0]
-"""
+{CORNELL_POINT_LIGHT}"""
     write("cornell-box-point", cornell(False), "Cornell box without its area light, metres.", CORNELL_MATERIALS, scene)
 
 
@@ -322,14 +325,7 @@ def moving_box():
 mesh = "../../cornell-box-point/mesh.obj"
 
 {CORNELL_CAMERA}
-[[lights]]
-kind = "point"
-position = [0.278, 0.5, 0.2795]
-intensity = [0.25, 0.2125, 0.15]
-
-[environment]
-radiance = [0.0, 0.0, 0.0]
-
+{CORNELL_POINT_LIGHT}
 [[dynamic]]
 mesh = "box.obj"
 translation = [0.08, 0.4, 0.28]

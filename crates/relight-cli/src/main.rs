@@ -365,76 +365,69 @@ fn run(cli: Cli) -> Result<()> {
             let context = load_context(&scene, &options, quiet)?;
             let lights = context.scene.lights.clone();
             let bars = Bars::new(quiet);
-            if frames > 1 {
-                if technique.technique == "reference" {
-                    bail!("--frames renders a technique's sequence; the reference renders one frame of the static scene");
+            let image_of = |renders: relight_render::render::Renders| {
+                if indirect_only {
+                    renders.indirect
+                } else {
+                    renders.full
                 }
-                let mut instance = create_technique(&context, &technique, quiet)?;
-                // One exposure for the whole sequence so that frames compare.
-                let mut sequence_exposure = exposure;
-                for index in 0..frames {
-                    instance.update(&Frame {
-                        lights: &lights,
-                        index: index as u64,
-                    })?;
-                    let frame_context = instance
-                        .frame_geometry()
-                        .map(|scene| context.with_frame_geometry(scene));
-                    let renders = relight_render::render::render_with_technique(
-                        frame_context.as_ref().unwrap_or(&context),
-                        &lights,
-                        instance.as_ref(),
-                        spp,
-                        seed,
-                        &bars,
-                    );
-                    let image = if indirect_only {
-                        &renders.indirect
-                    } else {
-                        &renders.full
-                    };
-                    let exposure = *sequence_exposure.get_or_insert_with(|| image.auto_exposure());
-                    let path = numbered_path(&output, index);
-                    image.write(&path, Some(exposure))?;
-                    if !quiet {
-                        eprintln!("wrote {}", path.display());
-                    }
+            };
+            let write = |image: &relight_render::image::Image,
+                         path: &std::path::Path,
+                         exposure: Option<f32>|
+             -> Result<()> {
+                image.write(path, exposure)?;
+                if !quiet {
+                    eprintln!("wrote {}", path.display());
                 }
-                return Ok(());
-            }
-            let renders = if technique.technique == "reference" {
+                Ok(())
+            };
+            if technique.technique == "reference" {
                 if technique.bake.is_some() || !technique.set.is_empty() {
                     bail!("--technique reference takes no --bake or --set; use --spp, --max-bounces and --seed");
+                }
+                if frames > 1 {
+                    bail!("--frames renders a technique's sequence; the reference renders one frame of the static scene");
                 }
                 let settings = PathSettings {
                     max_bounces,
                     seed,
                     ..PathSettings::default()
                 };
-                relight_render::render::render_reference(&context, &lights, settings, spp, &bars)
-            } else {
-                let mut instance = create_technique(&context, &technique, quiet)?;
+                let renders = relight_render::render::render_reference(
+                    &context, &lights, settings, spp, &bars,
+                );
+                return write(&image_of(renders), &output, exposure);
+            }
+            let mut instance = create_technique(&context, &technique, quiet)?;
+            // A sequence shares one exposure so that its frames compare.
+            let mut sequence_exposure = exposure;
+            for index in 0..frames.max(1) {
                 instance.update(&Frame {
                     lights: &lights,
-                    index: 0,
+                    index: index as u64,
                 })?;
-                relight_render::render::render_with_technique(
-                    &context,
+                // Techniques that move meshes hand the renderer this frame's
+                // geometry; the others render the static scene.
+                let frame_context = instance
+                    .frame_geometry()
+                    .map(|scene| context.with_frame_geometry(scene));
+                let renders = relight_render::render::render_with_technique(
+                    frame_context.as_ref().unwrap_or(&context),
                     &lights,
                     instance.as_ref(),
                     spp,
                     seed,
                     &bars,
-                )
-            };
-            let image = if indirect_only {
-                &renders.indirect
-            } else {
-                &renders.full
-            };
-            image.write(&output, exposure)?;
-            if !quiet {
-                eprintln!("wrote {}", output.display());
+                );
+                let image = image_of(renders);
+                if frames <= 1 {
+                    write(&image, &output, exposure)?;
+                } else {
+                    let frame_exposure =
+                        *sequence_exposure.get_or_insert_with(|| image.auto_exposure());
+                    write(&image, &numbered_path(&output, index), Some(frame_exposure))?;
+                }
             }
             Ok(())
         }

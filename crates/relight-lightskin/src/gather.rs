@@ -58,21 +58,14 @@ pub fn accumulate<const SPREAD: bool>(
     normal: Vec3,
     sums: &mut Sums,
 ) {
-    debug_assert!(
-        start.is_multiple_of(LANES) && end.is_multiple_of(LANES) && end <= vals.padded_len()
+    accumulate_many::<SPREAD>(
+        vals,
+        start,
+        end,
+        &[position],
+        &[normal],
+        std::slice::from_mut(sums),
     );
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-        {
-            // SAFETY: the CPU supports AVX2 and FMA (checked just above),
-            // and the range lies inside every column (asserted by callers
-            // and by the padding to LANES).
-            unsafe { accumulate_avx2::<SPREAD>(vals, start, end, position, normal, sums) };
-            return;
-        }
-    }
-    accumulate_portable::<SPREAD>(vals, start, end, position, normal, sums);
 }
 
 /// The portable form of [`accumulate`]; also the reference for its test.
@@ -109,27 +102,13 @@ pub fn accumulate_portable<const SPREAD: bool>(
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn accumulate_avx2<const SPREAD: bool>(
-    vals: &Vals,
-    start: usize,
-    end: usize,
-    position: Vec3,
-    normal: Vec3,
-    sums: &mut Sums,
-) {
-    let mut group = [*sums];
-    accumulate_avx2_group::<SPREAD, 1>(vals, start, end, [position], [normal], &mut group);
-    *sums = group[0];
-}
-
 /// Receivers per pass of the AVX2 kernel: each VAL load serves both, and
 /// the two independent dependency chains keep the FP units busy (the
 /// single-receiver loop is bound by its chain's latency, not by issue).
 pub const RECEIVERS_PER_PASS: usize = 4;
 
-/// [`accumulate`] for up to a few receivers at once.
+/// [`accumulate`] for several receivers: the AVX2 kernel takes them
+/// [`RECEIVERS_PER_PASS`] at a time, the rest one by one.
 pub fn accumulate_many<const SPREAD: bool>(
     vals: &Vals,
     start: usize,
@@ -165,14 +144,19 @@ pub fn accumulate_many<const SPREAD: bool>(
                 index += RECEIVERS_PER_PASS;
             }
             for rest in index..sums.len() {
-                accumulate::<SPREAD>(
-                    vals,
-                    start,
-                    end,
-                    positions[rest],
-                    normals[rest],
-                    &mut sums[rest],
-                );
+                let mut group = [sums[rest]];
+                // SAFETY: as above.
+                unsafe {
+                    accumulate_avx2_group::<SPREAD, 1>(
+                        vals,
+                        start,
+                        end,
+                        [positions[rest]],
+                        [normals[rest]],
+                        &mut group,
+                    )
+                };
+                sums[rest] = group[0];
             }
             return;
         }

@@ -5,6 +5,7 @@ use crate::dynamic::DynamicWorld;
 use glam::Vec3;
 use relight_core::Rgb;
 use relight_scene::Scene;
+use relight_trace::direct::Emitters;
 use relight_trace::{Bvh, Ray};
 
 /// The first surface a ray meets.
@@ -20,6 +21,8 @@ pub struct SurfaceHit {
 pub struct Geometry<'a> {
     pub scene: &'a Scene,
     pub bvh: &'a Bvh,
+    /// The scene's emissive triangles (built once with the scene).
+    pub emitters: &'a Emitters,
     pub ray_epsilon: f32,
     pub dynamic: Option<&'a DynamicWorld>,
 }

@@ -76,13 +76,13 @@ use dynamic::{DynamicMesh, DynamicWorld};
 use gather::Sums;
 use geometry::Geometry;
 use glam::Vec3;
-use points::{Anchor, Interpolation, TriangleSet, NEIGHBOURS};
+use points::{Anchor, Interpolation, NEIGHBOURS};
 use rayon::prelude::*;
 use relight_core::Rgb;
-use relight_scene::Scene;
+use relight_scene::{Mesh, Scene};
 use relight_technique::{
-    parse_params, Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint,
-    Technique, TechniqueError, TechniqueKind,
+    parse_params, with_scene_section, Frame, MemoryEntry, Progress, SceneContext, StageTimings,
+    SurfacePoint, Technique, TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
@@ -200,22 +200,6 @@ impl LightSkinParams {
     }
 }
 
-/// The `[lightskin]` table of the scene file as `key=value` pairs, followed
-/// by the command line's, so that the command line wins.
-fn scene_and_command_line_params(
-    scene: &Scene,
-    params: &[(String, String)],
-) -> Vec<(String, String)> {
-    let mut pairs = Vec::new();
-    if let Some(toml::Value::Table(table)) = scene.technique_sections.get("lightskin") {
-        for (key, value) in table {
-            pairs.push((key.clone(), value.to_string()));
-        }
-    }
-    pairs.extend_from_slice(params);
-    pairs
-}
-
 pub struct LightSkinKind;
 
 impl TechniqueKind for LightSkinKind {
@@ -235,7 +219,7 @@ impl TechniqueKind for LightSkinKind {
         params: &[(String, String)],
         _progress: &dyn Progress,
     ) -> Result<Box<dyn Technique>, TechniqueError> {
-        let pairs = scene_and_command_line_params(&context.scene, params);
+        let pairs = with_scene_section(&context.scene, "lightskin", params);
         let params = parse_params("lightskin", &LightSkinParams::default(), &pairs)?;
         params.validate()?;
         Ok(Box::new(LightSkin::new(context, params)?))
@@ -263,7 +247,7 @@ impl Vpls {
     }
 
     /// Equation 13 for every target of `interpolation`.
-    fn interpolate_from(&mut self, sources: &Vpls, interpolation: &Interpolation, first: usize) {
+    fn interpolate_from(&mut self, sources: &Vpls, interpolation: &Interpolation) {
         self.power
             .par_iter_mut()
             .zip(self.position.par_iter_mut())
@@ -274,7 +258,7 @@ impl Vpls {
                 let neighbours = &interpolation.neighbours[target];
                 let weights = &interpolation.weights[target];
                 for slot in 0..NEIGHBOURS {
-                    let source = first + neighbours[slot] as usize;
+                    let source = neighbours[slot] as usize;
                     power_sum += sources.power[source] * weights[slot];
                     position_sum += sources.position[source] * weights[slot];
                 }
@@ -344,9 +328,33 @@ struct SparsePoints {
     radius_sq: Vec<f32>,
     /// Phong exponent; 0 where the point has no glossy lobe.
     glossy_exponent: Vec<f32>,
-    static_count: usize,
     /// Per moving mesh: its anchors (mesh space) and first point index.
     dynamic_anchors: Vec<(usize, Vec<Anchor>)>,
+}
+
+impl SparsePoints {
+    /// Spreads `count` points over `mesh` (in the mesh's own space) and
+    /// appends them as discs of the mesh's area per point; returns their
+    /// anchors and that area.
+    fn add_mesh(
+        &mut self,
+        mesh: &Mesh,
+        count: usize,
+        seed: u64,
+        glossy_exponent: impl Fn(usize) -> f32,
+    ) -> (Vec<Anchor>, f32) {
+        let anchors = points::spread_points(mesh, count, seed);
+        let area_per_point = mesh.total_area() as f32 / anchors.len().max(1) as f32;
+        for anchor in &anchors {
+            self.positions.push(points::anchor_position(mesh, *anchor));
+            self.normals
+                .push(mesh.geometric_normal(anchor.triangle as usize));
+            self.radius_sq.push(area_per_point / PI);
+            self.glossy_exponent
+                .push(glossy_exponent(anchor.triangle as usize));
+        }
+        (anchors, area_per_point)
+    }
 }
 
 /// A running LightSkin for one scene.
@@ -401,68 +409,47 @@ impl LightSkin {
         };
 
         // Static sparse points, fixed to the static mesh.
-        let static_set = TriangleSet {
-            positions: &scene.mesh.positions,
-            triangles: &scene.mesh.triangles,
-        };
-        let static_anchors =
-            points::spread_points(&static_set, params.points as usize, params.seed);
-        let static_area = static_set.total_area() as f32;
         let mut sparse = SparsePoints::default();
-        let static_radius_sq = static_area / static_anchors.len().max(1) as f32 / PI;
-        let glossy_exponent = |material: &relight_scene::Material| {
+        let glossy_exponent = |triangle: usize| {
+            let material = scene.material_of(triangle);
             if params.specular > 0.0 && material.phong_exponent > 1.0 {
                 material.phong_exponent
             } else {
                 0.0
             }
         };
-        for anchor in &static_anchors {
-            sparse.positions.push(static_set.point(*anchor));
-            sparse.normals.push(static_set.normal(anchor.triangle));
-            sparse.radius_sq.push(static_radius_sq);
-            sparse
-                .glossy_exponent
-                .push(glossy_exponent(scene.material_of(anchor.triangle as usize)));
-        }
-        sparse.static_count = sparse.positions.len();
-        let spacing = (static_area / sparse.static_count.max(1) as f32).sqrt();
-        let static_normals = sparse.normals.clone();
+        let (_, area_per_point) = sparse.add_mesh(
+            &scene.mesh,
+            params.points as usize,
+            params.seed,
+            glossy_exponent,
+        );
         let texel_interpolation = Interpolation::build(
             &context.atlas.receivers.positions,
             &context.atlas.receivers.normals,
             &sparse.positions,
-            &static_normals,
-            spacing,
+            &sparse.normals,
+            area_per_point.sqrt(),
         );
 
         // Moving meshes: points and vertex neighbour lists in mesh space.
         let mut vertex_interpolation = Interpolation::default();
         let mut vertex_normals_local = Vec::new();
         for mesh in &dynamic_meshes {
-            let set = TriangleSet {
-                positions: &mesh.mesh.positions,
-                triangles: &mesh.mesh.triangles,
-            };
-            let anchors = points::spread_points(&set, params.dynamic_points as usize, params.seed);
             let first = sparse.positions.len();
-            let area = set.total_area() as f32;
-            let radius_sq = area / anchors.len().max(1) as f32 / PI;
-            let local_positions: Vec<Vec3> = anchors.iter().map(|&a| set.point(a)).collect();
-            let local_normals: Vec<Vec3> = anchors.iter().map(|a| set.normal(a.triangle)).collect();
-            for (position, normal) in local_positions.iter().zip(&local_normals) {
-                sparse.positions.push(*position);
-                sparse.normals.push(*normal);
-                sparse.radius_sq.push(radius_sq);
-                sparse.glossy_exponent.push(0.0);
-            }
-            let normals = vertex_normals(&set);
+            let (anchors, area_per_point) = sparse.add_mesh(
+                &mesh.mesh,
+                params.dynamic_points as usize,
+                params.seed,
+                |_| 0.0,
+            );
+            let normals = vertex_normals(&mesh.mesh);
             let mut lists = Interpolation::build(
                 &mesh.mesh.positions,
                 &normals,
-                &local_positions,
-                &local_normals,
-                (area / anchors.len().max(1) as f32).sqrt(),
+                &sparse.positions[first..],
+                &sparse.normals[first..],
+                area_per_point.sqrt(),
             );
             for neighbours in &mut lists.neighbours {
                 for index in neighbours.iter_mut() {
@@ -546,6 +533,7 @@ impl LightSkin {
         Geometry {
             scene: &self.context.scene,
             bvh: &self.context.bvh,
+            emitters: &self.context.emitters,
             ray_epsilon: relight_trace::direct::ray_epsilon_for(&self.context.bvh),
             dynamic: self.dynamic_world.as_ref(),
         }
@@ -569,14 +557,11 @@ impl LightSkin {
         for (mesh_index, (first, anchors)) in self.points.dynamic_anchors.iter().enumerate() {
             let pose = world.poses[mesh_index];
             let mesh = &self.dynamic_meshes[mesh_index].mesh;
-            let set = TriangleSet {
-                positions: &mesh.positions,
-                triangles: &mesh.triangles,
-            };
             for (offset, anchor) in anchors.iter().enumerate() {
-                self.points.positions[first + offset] = pose.transform_point3(set.point(*anchor));
+                self.points.positions[first + offset] =
+                    pose.transform_point3(points::anchor_position(mesh, *anchor));
                 self.points.normals[first + offset] = pose
-                    .transform_vector3(set.normal(anchor.triangle))
+                    .transform_vector3(mesh.geometric_normal(anchor.triangle as usize))
                     .normalize_or_zero();
             }
         }
@@ -627,6 +612,18 @@ impl LightSkin {
                     start = end;
                 }
             });
+        // Finish equation 7: the averaged light position l'_d (and the light
+        // sphere radius occlusion uses) once per point, for both later stages.
+        let epsilon_weight = self.epsilon_weight();
+        let sums = &self.sums;
+        self.point_diffuse
+            .position
+            .par_iter_mut()
+            .zip(self.light_radius.par_iter_mut())
+            .enumerate()
+            .for_each(|(index, (centre, radius))| {
+                (*centre, *radius) = Self::averaged_light(&sums[index], epsilon_weight, vals);
+            });
         if !self.glossy_sums.is_empty() {
             let eye = self.eye;
             let exponents = &self.points.glossy_exponent;
@@ -652,8 +649,8 @@ impl LightSkin {
         }
     }
 
-    /// Averaged light position and, when wanted, the light sphere radius
-    /// (largest side of the box l'_d +- sigma) from a point's sums.
+    /// Averaged light position and the light sphere radius (largest side of
+    /// the box l'_d +- sigma; meaningful when the spread was summed).
     fn averaged_light(sums: &Sums, epsilon_weight: f64, vals: &Vals) -> (Vec3, f32) {
         let count = vals.count as f64;
         let weight = sums.weight as f64 + epsilon_weight * count;
@@ -679,22 +676,23 @@ impl LightSkin {
     }
 
     fn renormalise_points(&mut self) {
-        let epsilon_weight = self.epsilon_weight();
-        let vals = &self.vals;
         let positions = &self.points.positions;
         let normals = &self.points.normals;
         let sums = &self.sums;
         let occlusion = &self.occlusion;
+        let lights = &self.point_diffuse.position;
         self.point_diffuse
             .power
             .par_iter_mut()
-            .zip(self.point_diffuse.position.par_iter_mut())
             .enumerate()
-            .for_each(|(index, (power, light))| {
-                let (centre, _) = Self::averaged_light(&sums[index], epsilon_weight, vals);
+            .for_each(|(index, power)| {
                 let irradiance = sums[index].irradiance() * (1.0 - occlusion[index]);
-                *light = centre;
-                *power = renormalise_diffuse(irradiance, centre, positions[index], normals[index]);
+                *power = renormalise_diffuse(
+                    irradiance,
+                    lights[index],
+                    positions[index],
+                    normals[index],
+                );
             });
         if !self.glossy_sums.is_empty() {
             let eye = self.eye;
@@ -730,8 +728,6 @@ impl LightSkin {
     }
 
     fn compute_occlusion(&mut self) {
-        let epsilon_weight = self.epsilon_weight();
-        let vals = &self.vals;
         let sums = &self.sums;
         let mut occluders = std::mem::take(&mut self.occluders);
         occluders.fill(
@@ -741,26 +737,23 @@ impl LightSkin {
         );
         let positions = &self.points.positions;
         let normals = &self.points.normals;
+        let lights = &self.point_diffuse.position;
+        let light_radius = &self.light_radius;
         self.occlusion
             .par_iter_mut()
-            .zip(self.light_radius.par_iter_mut())
             .enumerate()
-            .for_each(|(index, (occluded, radius))| {
-                if sums[index].weight <= 0.0 {
-                    *occluded = 0.0;
-                    *radius = 0.0;
-                    return;
-                }
-                let (centre, light_radius) =
-                    Self::averaged_light(&sums[index], epsilon_weight, vals);
-                *radius = light_radius;
-                *occluded = occlusion::occluded_fraction(
-                    &occluders,
-                    positions[index],
-                    normals[index],
-                    centre,
-                    light_radius,
-                );
+            .for_each(|(index, occluded)| {
+                *occluded = if sums[index].weight <= 0.0 {
+                    0.0
+                } else {
+                    occlusion::occluded_fraction(
+                        &occluders,
+                        positions[index],
+                        normals[index],
+                        lights[index],
+                        light_radius[index],
+                    )
+                };
             });
         self.occluders = occluders;
     }
@@ -768,12 +761,12 @@ impl LightSkin {
     fn interpolate(&mut self) {
         let atlas = &self.context.atlas;
         self.texel_diffuse
-            .interpolate_from(&self.point_diffuse, &self.texel_interpolation, 0);
+            .interpolate_from(&self.point_diffuse, &self.texel_interpolation);
         atlas.scatter_into(&self.texel_diffuse.power, &mut self.diffuse_power_map);
         atlas.scatter_into(&self.texel_diffuse.position, &mut self.diffuse_position_map);
         if !self.glossy_sums.is_empty() {
             self.texel_glossy
-                .interpolate_from(&self.point_glossy, &self.texel_interpolation, 0);
+                .interpolate_from(&self.point_glossy, &self.texel_interpolation);
             atlas.scatter_into(&self.texel_glossy.power, &mut self.glossy_power_map);
             atlas.scatter_into(&self.texel_glossy.position, &mut self.glossy_position_map);
         }
@@ -791,17 +784,11 @@ impl LightSkin {
                 );
             });
         if !self.vertex_interpolation.is_empty() {
-            self.vertex_diffuse.interpolate_from(
-                &self.point_diffuse,
-                &self.vertex_interpolation,
-                0,
-            );
+            self.vertex_diffuse
+                .interpolate_from(&self.point_diffuse, &self.vertex_interpolation);
             if !self.glossy_sums.is_empty() {
-                self.vertex_glossy.interpolate_from(
-                    &self.point_glossy,
-                    &self.vertex_interpolation,
-                    0,
-                );
+                self.vertex_glossy
+                    .interpolate_from(&self.point_glossy, &self.vertex_interpolation);
             }
         }
     }
@@ -860,11 +847,11 @@ fn reflect_view(eye: Vec3, position: Vec3, normal: Vec3) -> Vec3 {
     (incoming - 2.0 * incoming.dot(normal) * normal).normalize_or_zero()
 }
 
-/// Area-weighted vertex normals of a triangle set.
-fn vertex_normals(set: &TriangleSet) -> Vec<Vec3> {
-    let mut normals = vec![Vec3::ZERO; set.positions.len()];
-    for triangle in set.triangles {
-        let [a, b, c] = triangle.map(|v| set.positions[v as usize]);
+/// Area-weighted vertex normals of a mesh.
+fn vertex_normals(mesh: &Mesh) -> Vec<Vec3> {
+    let mut normals = vec![Vec3::ZERO; mesh.positions.len()];
+    for triangle in &mesh.triangles {
+        let [a, b, c] = triangle.map(|v| mesh.positions[v as usize]);
         let weighted = (b - a).cross(c - a);
         for &vertex in triangle {
             normals[vertex as usize] += weighted;
@@ -953,7 +940,7 @@ impl Technique for LightSkin {
         }
         // Rare (back faces, points off the meshes): a linear scan for the
         // eight nearest facing points is cheaper than keeping a moving grid.
-        let mut nearest: Vec<(u32, f32, Vec3)> = Vec::with_capacity(NEIGHBOURS + 1);
+        let mut nearest = points::Nearest::default();
         for (index, (&point, &point_normal)) in self
             .points
             .positions
@@ -961,20 +948,15 @@ impl Technique for LightSkin {
             .zip(&self.points.normals)
             .enumerate()
         {
-            if point_normal.dot(normal) <= 0.0 {
-                continue;
-            }
-            let distance = point.distance(position);
-            if nearest.len() < NEIGHBOURS || distance < nearest[nearest.len() - 1].1 {
-                let at = nearest.partition_point(|&(_, d, _)| d <= distance);
-                nearest.insert(at, (index as u32, distance, point_normal));
-                nearest.truncate(NEIGHBOURS);
+            if point_normal.dot(normal) > 0.0 {
+                nearest.offer(index as u32, point.distance(position));
             }
         }
-        let (indices, weights) = points::interpolation_weights(normal, &nearest);
+        let count = nearest.as_slice().len();
+        let (indices, weights) = nearest.weights(normal, &self.points.normals);
         let mut power = Rgb::ZERO;
         let mut light = Vec3::ZERO;
-        for slot in 0..nearest.len() {
+        for slot in 0..count {
             power += self.point_diffuse.power[indices[slot] as usize] * weights[slot];
             light += self.point_diffuse.position[indices[slot] as usize] * weights[slot];
         }

@@ -174,12 +174,13 @@ fn overlap_portable(occluders: &Occluders, light: &LightQuad) -> f32 {
         let half_side = 0.5 * area.sqrt();
         let u = direction.dot(light.tangent);
         let v = direction.dot(light.bitangent);
-        let overlap_u = ((u + half_side).min(light.u + light.half_side)
-            - (u - half_side).max(light.u - light.half_side))
-        .max(0.0);
-        let overlap_v = ((v + half_side).min(light.v + light.half_side)
-            - (v - half_side).max(light.v - light.half_side))
-        .max(0.0);
+        let overlap = |centre: f32, light_centre: f32| {
+            ((centre + half_side).min(light_centre + light.half_side)
+                - (centre - half_side).max(light_centre - light.half_side))
+            .max(0.0)
+        };
+        let overlap_u = overlap(u, light.u);
+        let overlap_v = overlap(v, light.v);
         overlap_sum += fade * overlap_u * overlap_v;
     }
     overlap_sum
@@ -274,20 +275,18 @@ unsafe fn overlap_avx2(occluders: &Occluders, light: &LightQuad) -> f32 {
             _mm256_fmadd_ps(dz, bz, _mm256_fmadd_ps(dy, by, _mm256_mul_ps(dx, bx))),
             inverse,
         );
-        let overlap_u = _mm256_max_ps(
-            _mm256_sub_ps(
-                _mm256_min_ps(_mm256_add_ps(u, half_side), light_u_high),
-                _mm256_max_ps(_mm256_sub_ps(u, half_side), light_u_low),
-            ),
-            zero,
-        );
-        let overlap_v = _mm256_max_ps(
-            _mm256_sub_ps(
-                _mm256_min_ps(_mm256_add_ps(v, half_side), light_v_high),
-                _mm256_max_ps(_mm256_sub_ps(v, half_side), light_v_low),
-            ),
-            zero,
-        );
+        // Overlap of [centre - half, centre + half] with [low, high].
+        let overlap = |centre: __m256, low: __m256, high: __m256| {
+            _mm256_max_ps(
+                _mm256_sub_ps(
+                    _mm256_min_ps(_mm256_add_ps(centre, half_side), high),
+                    _mm256_max_ps(_mm256_sub_ps(centre, half_side), low),
+                ),
+                zero,
+            )
+        };
+        let overlap_u = overlap(u, light_u_low, light_u_high);
+        let overlap_v = overlap(v, light_v_low, light_v_high);
         let valid = _mm256_and_ps(
             _mm256_cmp_ps::<_CMP_GT_OQ>(cos_receiver, min_cos),
             _mm256_cmp_ps::<_CMP_GT_OQ>(distance_sq, min_distance_sq),

@@ -7,7 +7,7 @@
 //! eighth nearest facing neighbour (itself included): the area per point of
 //! the local sampling density.
 
-use crate::points::{PointGrid, NEIGHBOURS};
+use crate::points::{Nearest, PointGrid, NEIGHBOURS};
 use crate::vals::Val;
 use crate::LightSkinError;
 use glam::Vec3;
@@ -401,7 +401,7 @@ pub fn point_cloud_vals(points: &[CloudPoint], scale: f32) -> Vec<Val> {
         extent / (points.len() as f32).sqrt().max(1.0) * 2.0
     };
     let grid = needs_density.then(|| PointGrid::new(&positions, cell));
-    let mut found = Vec::new();
+    let mut found = Nearest::default();
     points
         .iter()
         .map(|point| {
@@ -409,7 +409,7 @@ pub fn point_cloud_vals(points: &[CloudPoint], scale: f32) -> Vec<Val> {
                 (Some(radius), _) => std::f32::consts::PI * radius * radius,
                 (None, Some(grid)) => {
                     grid.nearest_facing(point.position, point.normal, &normals, &mut found);
-                    let farthest = found.last().map_or(0.0, |&(_, d)| d);
+                    let farthest = found.as_slice().last().map_or(0.0, |&(_, d)| d);
                     std::f32::consts::PI * farthest * farthest / (NEIGHBOURS as f32 - 1.0)
                 }
                 (None, None) => 0.0,

@@ -10,6 +10,7 @@
 
 use glam::{Vec2, Vec3};
 use relight_core::sampling::{radical_inverse, uniform_triangle};
+use relight_scene::{AreaTable, Mesh};
 use std::collections::HashMap;
 
 /// Neighbours per interpolated target (the paper's eight).
@@ -22,36 +23,10 @@ pub struct Anchor {
     pub barycentric: Vec2,
 }
 
-/// Triangle geometry in one space (world for the static scene, mesh space
-/// for moving meshes).
-pub struct TriangleSet<'a> {
-    pub positions: &'a [Vec3],
-    pub triangles: &'a [[u32; 3]],
-}
-
-impl TriangleSet<'_> {
-    pub fn vertices(&self, triangle: u32) -> [Vec3; 3] {
-        self.triangles[triangle as usize].map(|v| self.positions[v as usize])
-    }
-
-    pub fn point(&self, anchor: Anchor) -> Vec3 {
-        let [a, b, c] = self.vertices(anchor.triangle);
-        a + (b - a) * anchor.barycentric.x + (c - a) * anchor.barycentric.y
-    }
-
-    pub fn normal(&self, triangle: u32) -> Vec3 {
-        let [a, b, c] = self.vertices(triangle);
-        (b - a).cross(c - a).normalize_or_zero()
-    }
-
-    fn area(&self, triangle: u32) -> f64 {
-        let [a, b, c] = self.vertices(triangle);
-        0.5 * (b - a).cross(c - a).length() as f64
-    }
-
-    pub fn total_area(&self) -> f64 {
-        (0..self.triangles.len() as u32).map(|t| self.area(t)).sum()
-    }
+/// Where an anchor lies on `mesh` (in the mesh's own space).
+pub fn anchor_position(mesh: &Mesh, anchor: Anchor) -> Vec3 {
+    let [a, b, c] = mesh.vertices(anchor.triangle as usize);
+    a + (b - a) * anchor.barycentric.x + (c - a) * anchor.barycentric.y
 }
 
 /// Candidates per requested point for dart throwing.
@@ -60,16 +35,11 @@ const CANDIDATES_PER_POINT: usize = 8;
 /// About `count` points spread evenly over `set` (fewer only when `set`
 /// has no area). `seed` rotates the Halton candidates (Cranley-Patterson),
 /// so different seeds give different, equally even, distributions.
-pub fn spread_points(set: &TriangleSet, count: usize, seed: u64) -> Vec<Anchor> {
-    let total_area = set.total_area();
+pub fn spread_points(mesh: &Mesh, count: usize, seed: u64) -> Vec<Anchor> {
+    let areas = AreaTable::new(mesh);
+    let total_area = areas.total();
     if count == 0 || total_area <= 0.0 {
         return Vec::new();
-    }
-    let mut cumulative = Vec::with_capacity(set.triangles.len());
-    let mut running = 0.0f64;
-    for triangle in 0..set.triangles.len() as u32 {
-        running += set.area(triangle);
-        cumulative.push(running);
     }
     let rotation = [
         radical_inverse(7, seed),
@@ -80,10 +50,7 @@ pub fn spread_points(set: &TriangleSet, count: usize, seed: u64) -> Vec<Anchor> 
         .map(|index| {
             let rotate =
                 |base: u32, offset: f64| (radical_inverse(base, index + 1) + offset).fract();
-            let target = rotate(2, rotation[0]) * running;
-            let triangle = cumulative
-                .partition_point(|&c| c <= target)
-                .min(cumulative.len() - 1) as u32;
+            let triangle = areas.triangle_at(rotate(2, rotation[0]) * total_area) as u32;
             let barycentric = uniform_triangle(Vec2::new(
                 rotate(3, rotation[1]) as f32,
                 rotate(5, rotation[2]) as f32,
@@ -92,7 +59,7 @@ pub fn spread_points(set: &TriangleSet, count: usize, seed: u64) -> Vec<Anchor> 
                 triangle,
                 barycentric,
             };
-            (anchor, set.point(anchor))
+            (anchor, anchor_position(mesh, anchor))
         })
         .collect();
     // Hexagonal packing of `count` discs of diameter d covers
@@ -185,7 +152,7 @@ impl<'a> PointGrid<'a> {
         position: Vec3,
         normal: Vec3,
         normals: &[Vec3],
-        found: &mut Vec<(u32, f32)>,
+        found: &mut Nearest,
     ) {
         found.clear();
         if self.positions.is_empty() {
@@ -193,15 +160,9 @@ impl<'a> PointGrid<'a> {
         }
         let centre = (position / self.cell).floor().as_ivec3();
         let reach = ((self.high - self.low).max_element() / self.cell).ceil() as i32 + 2;
-        let consider = |index: u32, found: &mut Vec<(u32, f32)>| {
-            if normals[index as usize].dot(normal) <= 0.0 {
-                return;
-            }
-            let distance = self.positions[index as usize].distance(position);
-            if found.len() < NEIGHBOURS || distance < found[found.len() - 1].1 {
-                let at = found.partition_point(|&(i, d)| (d, i) < (distance, index));
-                found.insert(at, (index, distance));
-                found.truncate(NEIGHBOURS);
+        let consider = |index: u32, found: &mut Nearest| {
+            if normals[index as usize].dot(normal) > 0.0 {
+                found.offer(index, self.positions[index as usize].distance(position));
             }
         };
         for ring in 0..=reach {
@@ -222,10 +183,71 @@ impl<'a> PointGrid<'a> {
             }
             // Every point outside the searched rings is at least `ring`
             // cells away.
-            if found.len() == NEIGHBOURS && found[NEIGHBOURS - 1].1 <= ring as f32 * self.cell {
+            if found.is_full() && found.farthest() <= ring as f32 * self.cell {
                 return;
             }
         }
+    }
+}
+
+/// The [`NEIGHBOURS`] nearest points offered so far, as (index, distance),
+/// nearest first, ties by index so that results do not depend on the order
+/// of offers. Fixed size: no allocation per query.
+#[derive(Clone, Copy, Debug)]
+pub struct Nearest {
+    entries: [(u32, f32); NEIGHBOURS],
+    len: usize,
+}
+
+impl Default for Nearest {
+    fn default() -> Self {
+        Self {
+            entries: [(0, 0.0); NEIGHBOURS],
+            len: 0,
+        }
+    }
+}
+
+impl Nearest {
+    pub fn clear(&mut self) {
+        self.len = 0;
+    }
+
+    pub fn offer(&mut self, index: u32, distance: f32) {
+        if self.len == NEIGHBOURS && distance >= self.entries[NEIGHBOURS - 1].1 {
+            return;
+        }
+        let at = self.entries[..self.len].partition_point(|&(i, d)| (d, i) < (distance, index));
+        let end = (self.len + 1).min(NEIGHBOURS);
+        self.entries.copy_within(at..end - 1, at + 1);
+        self.entries[at] = (index, distance);
+        self.len = end;
+    }
+
+    pub fn as_slice(&self) -> &[(u32, f32)] {
+        &self.entries[..self.len]
+    }
+
+    /// Equation 12 weights of these neighbours for a target with `normal`
+    /// (see [`interpolation_weights`]).
+    pub fn weights(
+        &self,
+        normal: Vec3,
+        point_normals: &[Vec3],
+    ) -> ([u32; NEIGHBOURS], [f32; NEIGHBOURS]) {
+        let mut entries = [(0u32, 0f32, Vec3::ZERO); NEIGHBOURS];
+        for (entry, &(index, distance)) in entries.iter_mut().zip(self.as_slice()) {
+            *entry = (index, distance, point_normals[index as usize]);
+        }
+        interpolation_weights(normal, &entries[..self.len])
+    }
+
+    fn is_full(&self) -> bool {
+        self.len == NEIGHBOURS
+    }
+
+    fn farthest(&self) -> f32 {
+        self.entries[self.len - 1].1
     }
 }
 
@@ -263,13 +285,9 @@ impl Interpolation {
         let (neighbours, weights) = target_positions
             .par_iter()
             .zip(target_normals)
-            .map_init(Vec::new, |found, (&position, &normal)| {
+            .map_init(Nearest::default, |found, (&position, &normal)| {
                 grid.nearest_facing(position, normal, point_normals, found);
-                let entries: Vec<(u32, f32, Vec3)> = found
-                    .iter()
-                    .map(|&(index, distance)| (index, distance, point_normals[index as usize]))
-                    .collect();
-                interpolation_weights(normal, &entries)
+                found.weights(normal, point_normals)
             })
             .unzip();
         Self {

@@ -156,17 +156,36 @@ impl Vals {
         if budget == 0 || self.count <= budget {
             return;
         }
-        let all: Vec<Val> = (0..self.count).map(|index| self.get(index)).collect();
-        let scale = self.count as f32 / budget as f32;
-        let kept: Vec<Val> = (0..budget)
-            .map(|index| {
-                let mut val = all[index * all.len() / budget];
-                val.power_over_pi *= scale;
-                val
-            })
-            .collect();
-        self.clear();
-        self.extend(&kept);
+        let count = self.count;
+        let scale = count as f32 / budget as f32;
+        // Source index * count / budget never falls behind its destination,
+        // so a forward copy in place is safe.
+        for column in self.columns_mut() {
+            for index in 0..budget {
+                column[index] = column[index * count / budget];
+            }
+            column.truncate(budget);
+        }
+        self.count = budget;
+        for column in [
+            &mut self.power_r,
+            &mut self.power_g,
+            &mut self.power_b,
+            &mut self.power_luminance,
+        ] {
+            for power in column.iter_mut() {
+                *power *= scale;
+            }
+        }
+        self.position_sum = [0.0; 3];
+        self.position_square_sum = [0.0; 3];
+        for index in 0..budget {
+            for (axis, column) in [&self.px, &self.py, &self.pz].into_iter().enumerate() {
+                let coordinate = column[index] as f64;
+                self.position_sum[axis] += coordinate;
+                self.position_square_sum[axis] += coordinate * coordinate;
+            }
+        }
     }
 
     pub fn padded_len(&self) -> usize {
@@ -311,23 +330,20 @@ pub fn render_rsms(geometry: &Geometry, lights: &[Light], settings: RsmSettings,
             )),
         }
     }
-    let emitters = geometry.scene.emissive_triangles();
+    let emitters = geometry.emitters;
     if !emitters.is_empty() && settings.emissive_resolution > 0 {
-        let per_emitter = ((settings.emissive_resolution as f32 / (emitters.len() as f32).sqrt())
-            .round() as u32)
-            .max(2);
-        for &triangle in &emitters {
-            let mesh = &geometry.scene.mesh;
-            let [a, b, c] = mesh.vertices(triangle as usize);
-            let normal = mesh.geometric_normal(triangle as usize);
-            let area = mesh.area(triangle as usize);
-            let radiance = geometry.scene.material_of(triangle as usize).emission;
+        let count = emitters.triangles.len();
+        let per_emitter =
+            ((settings.emissive_resolution as f32 / (count as f32).sqrt()).round() as u32).max(2);
+        for emitter in 0..count {
+            let [a, b, c] = emitters.vertices[emitter];
+            let normal = emitters.normals[emitter];
             sources.push((
                 Source::Point {
                     position: (a + b + c) / 3.0 + normal * geometry.ray_epsilon,
                     // A small Lambertian emitter of radiance L and area A has
                     // intensity L A cos(theta) (W/sr).
-                    intensity: radiance * area,
+                    intensity: emitters.radiance[emitter] * emitters.areas[emitter],
                     profile: Profile::Lambertian { normal },
                 },
                 per_emitter,
@@ -335,7 +351,7 @@ pub fn render_rsms(geometry: &Geometry, lights: &[Light], settings: RsmSettings,
         }
     }
     for (source, resolution) in sources {
-        let vals = match source {
+        match source {
             Source::Point {
                 position,
                 intensity,
@@ -354,29 +370,53 @@ pub fn render_rsms(geometry: &Geometry, lights: &[Light], settings: RsmSettings,
                         resolution,
                         intensity,
                         profile,
+                        out,
                     )
                 }
-                _ => CUBE_FACES
-                    .iter()
-                    .flat_map(|&face| {
+                _ => {
+                    for face in CUBE_FACES {
                         perspective_map(
-                            geometry, position, face, 1.0, resolution, intensity, profile,
-                        )
-                    })
-                    .collect(),
+                            geometry, position, face, 1.0, resolution, intensity, profile, out,
+                        );
+                    }
+                }
             },
             Source::Directional {
                 direction,
                 irradiance,
-            } => orthographic_map(geometry, direction, irradiance, resolution),
-        };
-        out.extend(&vals);
+            } => orthographic_map(geometry, direction, irradiance, resolution, out),
+        }
+    }
+}
+
+/// Calls `texel(u, v)` for the centre of every texel of a `resolution`^2
+/// map spanning (-half_extent, half_extent)^2, rows in parallel, and
+/// appends the VALs it returns to `out` in row order (deterministic).
+fn map_texels(
+    resolution: u32,
+    half_extent: f32,
+    out: &mut Vals,
+    texel: impl Fn(f32, f32) -> Option<Val> + Sync,
+) {
+    let side = 2.0 * half_extent / resolution as f32;
+    let rows: Vec<Vec<Val>> = (0..resolution)
+        .into_par_iter()
+        .map(|row| {
+            let v = (row as f32 + 0.5) * side - half_extent;
+            (0..resolution)
+                .filter_map(|column| texel((column as f32 + 0.5) * side - half_extent, v))
+                .collect()
+        })
+        .collect();
+    for row in rows {
+        out.extend(&row);
     }
 }
 
 /// One perspective map: texel (i, j) looks along forward + u right + v up
 /// with u, v in (-half_extent, half_extent); its solid angle is
 /// s^2 / (1 + u^2 + v^2)^(3/2) for texel side s on the unit-distance plane.
+#[allow(clippy::too_many_arguments)]
 fn perspective_map(
     geometry: &Geometry,
     origin: Vec3,
@@ -385,37 +425,24 @@ fn perspective_map(
     resolution: u32,
     intensity: Rgb,
     profile: Profile,
-) -> Vec<Val> {
+    out: &mut Vals,
+) {
     let side = 2.0 * half_extent / resolution as f32;
-    let rows: Vec<Vec<Val>> = (0..resolution)
-        .into_par_iter()
-        .map(|row| {
-            let mut vals = Vec::new();
-            for column in 0..resolution {
-                let u = (column as f32 + 0.5) * side - half_extent;
-                let v = (row as f32 + 0.5) * side - half_extent;
-                let direction = forward + right * u + up * v;
-                let length_sq = direction.length_squared();
-                let unit = direction / length_sq.sqrt();
-                let factor = profile.factor(unit);
-                if factor <= 0.0 {
-                    continue;
-                }
-                let solid_angle = side * side / (length_sq * length_sq.sqrt());
-                let Some(hit) = geometry.first_hit(origin, unit) else {
-                    continue;
-                };
-                let incident_power = intensity * (factor * solid_angle);
-                let cos_hit = hit.normal.dot(unit).abs();
-                let footprint = solid_angle * hit.distance * hit.distance;
-                if let Some(val) = reflect(&hit, unit, incident_power, footprint, cos_hit) {
-                    vals.push(val);
-                }
-            }
-            vals
-        })
-        .collect();
-    rows.into_iter().flatten().collect()
+    map_texels(resolution, half_extent, out, |u, v| {
+        let direction = forward + right * u + up * v;
+        let length_sq = direction.length_squared();
+        let unit = direction / length_sq.sqrt();
+        let factor = profile.factor(unit);
+        if factor <= 0.0 {
+            return None;
+        }
+        let solid_angle = side * side / (length_sq * length_sq.sqrt());
+        let hit = geometry.first_hit(origin, unit)?;
+        let incident_power = intensity * (factor * solid_angle);
+        let cos_hit = hit.normal.dot(unit).abs();
+        let footprint = solid_angle * hit.distance * hit.distance;
+        reflect(&hit, unit, incident_power, footprint, cos_hit)
+    });
 }
 
 /// An orthographic map over the bounding sphere of everything that can be
@@ -425,38 +452,24 @@ fn orthographic_map(
     direction: Vec3,
     irradiance: Rgb,
     resolution: u32,
-) -> Vec<Val> {
+    out: &mut Vals,
+) {
     let (centre, radius) = geometry.bounding_sphere();
     let (right, up) = relight_core::sampling::orthonormal_basis(direction);
     let side = 2.0 * radius / resolution as f32;
     let texel_area = side * side;
     let start = centre - direction * (2.0 * radius);
-    let rows: Vec<Vec<Val>> = (0..resolution)
-        .into_par_iter()
-        .map(|row| {
-            let mut vals = Vec::new();
-            for column in 0..resolution {
-                let u = (column as f32 + 0.5) * side - radius;
-                let v = (row as f32 + 0.5) * side - radius;
-                let origin = start + right * u + up * v;
-                let Some(hit) = geometry.first_hit(origin, direction) else {
-                    continue;
-                };
-                let cos_hit = hit.normal.dot(direction).abs();
-                if let Some(val) = reflect(
-                    &hit,
-                    direction,
-                    irradiance * texel_area,
-                    texel_area,
-                    cos_hit,
-                ) {
-                    vals.push(val);
-                }
-            }
-            vals
-        })
-        .collect();
-    rows.into_iter().flatten().collect()
+    map_texels(resolution, radius, out, |u, v| {
+        let hit = geometry.first_hit(start + right * u + up * v, direction)?;
+        let cos_hit = hit.normal.dot(direction).abs();
+        reflect(
+            &hit,
+            direction,
+            irradiance * texel_area,
+            texel_area,
+            cos_hit,
+        )
+    });
 }
 
 /// The VAL a texel leaves: the flux it received times the albedo, on the

@@ -394,12 +394,8 @@ pub(crate) struct Entries {
 /// the triangle, 3 and 5 within it), so they cover surfaces evenly.
 pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, TechniqueError> {
     let mesh = &scene.mesh;
-    let mut cumulative = Vec::with_capacity(mesh.triangles.len());
-    let mut running = 0.0f64;
-    for triangle in 0..mesh.triangles.len() {
-        running += mesh.area(triangle) as f64;
-        cumulative.push(running);
-    }
+    let areas = relight_scene::AreaTable::new(mesh);
+    let running = areas.total();
     if running <= 0.0 {
         return Err(TechniqueError::Other(
             "the scene has no surface area to place PRM entry points on".into(),
@@ -412,10 +408,7 @@ pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, Tec
     };
     for index in 0..count as u64 {
         // Index 0 of Halton is the origin; start at 1.
-        let target = radical_inverse(2, index + 1) * running;
-        let triangle = cumulative
-            .partition_point(|&c| c <= target)
-            .min(cumulative.len() - 1);
+        let triangle = areas.triangle_at(radical_inverse(2, index + 1) * running);
         let sample = Vec2::new(
             radical_inverse(3, index + 1) as f32,
             radical_inverse(5, index + 1) as f32,

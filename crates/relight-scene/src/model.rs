@@ -54,6 +54,40 @@ impl Mesh {
     }
 }
 
+/// Running sums of triangle areas, for picking triangles in proportion to
+/// their area (entry points, sparse points).
+#[derive(Clone, Debug, Default)]
+pub struct AreaTable {
+    cumulative: Vec<f64>,
+}
+
+impl AreaTable {
+    pub fn new(mesh: &Mesh) -> Self {
+        let mut running = 0.0f64;
+        let cumulative = (0..mesh.triangles.len())
+            .map(|triangle| {
+                running += mesh.area(triangle) as f64;
+                running
+            })
+            .collect();
+        Self { cumulative }
+    }
+
+    /// Total area (m^2).
+    pub fn total(&self) -> f64 {
+        self.cumulative.last().copied().unwrap_or(0.0)
+    }
+
+    /// The triangle whose share of the running area holds `target` (in
+    /// 0..total); targets at or past the total give the last triangle.
+    /// The table must not be empty.
+    pub fn triangle_at(&self, target: f64) -> usize {
+        self.cumulative
+            .partition_point(|&c| c <= target)
+            .min(self.cumulative.len() - 1)
+    }
+}
+
 /// Lambertian material with an optional albedo texture, optional emission and
 /// a Blinn-Phong exponent kept for glossy techniques.
 #[derive(Clone, Debug)]

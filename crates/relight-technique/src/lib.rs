@@ -26,4 +26,4 @@ pub use builtin::{
 };
 pub use context::{ContextSettings, SceneContext};
 pub use interface::*;
-pub use params::{parse_params, ParamError};
+pub use params::{parse_params, with_scene_section, ParamError};

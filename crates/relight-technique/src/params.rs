@@ -37,6 +37,23 @@ pub fn parse_params<T: DeserializeOwned + serde::Serialize>(
     T::deserialize(toml::Value::Table(table)).map_err(|e| error(format!("{e}")))
 }
 
+/// The scene file's `[technique]` table as `key=value` pairs followed by
+/// `pairs`, so that the command line wins over the scene's defaults.
+pub fn with_scene_section(
+    scene: &relight_scene::Scene,
+    technique: &str,
+    pairs: &[(String, String)],
+) -> Vec<(String, String)> {
+    let mut merged = Vec::new();
+    if let Some(toml::Value::Table(table)) = scene.technique_sections.get(technique) {
+        for (key, value) in table {
+            merged.push((key.clone(), value.to_string()));
+        }
+    }
+    merged.extend_from_slice(pairs);
+    merged
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
