@@ -8,7 +8,7 @@
 use crate::LightSkinError;
 use glam::{Affine3A, EulerRot, Quat, Vec3};
 use relight_core::Rgb;
-use relight_scene::{Mesh, Scene};
+use relight_scene::{Material, Mesh, Scene};
 use relight_trace::Bvh;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -32,8 +32,9 @@ struct RawDynamic {
 pub struct DynamicMesh {
     pub path: PathBuf,
     pub mesh: Mesh,
-    /// Albedo per triangle (textures averaged: moving meshes have no lightmap).
-    pub triangle_albedos: Vec<Rgb>,
+    /// Materials of `mesh.material_ids`, textures folded into their albedo
+    /// (moving meshes have no lightmap).
+    pub materials: Vec<Material>,
     pub translation: Vec3,
     pub rotation: Vec3,
     pub velocity: Vec3,
@@ -87,20 +88,20 @@ pub fn load_dynamic_meshes(scene: &Scene) -> Result<Vec<DynamicMesh>, LightSkinE
             }
         }
         let path = folder.join(&entry.mesh);
-        let (mesh, materials) =
+        let (mesh, mut materials) =
             relight_scene::load_mesh(&path).map_err(|error| LightSkinError::Scene {
                 path: scene.source.clone(),
                 message: format!("[[dynamic]] entry {} ({scene_file}): {error}", index + 1),
             })?;
-        let triangle_albedos = mesh
-            .material_ids
-            .iter()
-            .map(|&id| materials[id as usize].albedo)
-            .collect();
+        // Moving meshes reflect; light sources stay static (the emitter
+        // table is built once per scene).
+        for material in &mut materials {
+            material.emission = Rgb::ZERO;
+        }
         meshes.push(DynamicMesh {
             path,
             mesh,
-            triangle_albedos,
+            materials,
             translation: Vec3::from_array(entry.translation),
             rotation: Vec3::from_array(entry.rotation),
             velocity: Vec3::from_array(entry.velocity),
@@ -115,7 +116,10 @@ pub struct DynamicWorld {
     pub positions: Vec<Vec3>,
     pub triangles: Vec<[u32; 3]>,
     pub triangle_normals: Vec<Vec3>,
-    pub triangle_albedos: Vec<Rgb>,
+    /// Every mesh's materials, concatenated, and each triangle's index
+    /// into them.
+    pub materials: Vec<Material>,
+    pub material_ids: Vec<u32>,
     /// First triangle and first vertex of each mesh.
     pub triangle_offsets: Vec<u32>,
     pub vertex_offsets: Vec<u32>,
@@ -127,7 +131,8 @@ impl DynamicWorld {
     pub fn place(meshes: &[DynamicMesh], frame: u64) -> Self {
         let mut positions = Vec::new();
         let mut triangles = Vec::new();
-        let mut triangle_albedos = Vec::new();
+        let mut materials = Vec::new();
+        let mut material_ids = Vec::new();
         let mut triangle_offsets = Vec::with_capacity(meshes.len());
         let mut vertex_offsets = Vec::with_capacity(meshes.len());
         let mut poses = Vec::with_capacity(meshes.len());
@@ -148,7 +153,9 @@ impl DynamicWorld {
                     .iter()
                     .map(|t| t.map(|v| v + first_vertex)),
             );
-            triangle_albedos.extend_from_slice(&mesh.triangle_albedos);
+            let first_material = materials.len() as u32;
+            material_ids.extend(mesh.mesh.material_ids.iter().map(|&id| id + first_material));
+            materials.extend_from_slice(&mesh.materials);
             poses.push(pose);
         }
         let triangle_normals = triangles
@@ -163,7 +170,8 @@ impl DynamicWorld {
             positions,
             triangles,
             triangle_normals,
-            triangle_albedos,
+            materials,
+            material_ids,
             triangle_offsets,
             vertex_offsets,
             poses,
@@ -194,14 +202,11 @@ impl DynamicWorld {
                 .texcoords
                 .resize(merged.mesh.positions.len(), glam::Vec2::ZERO);
         }
-        for (index, albedo) in self.triangle_albedos.iter().enumerate() {
-            merged.materials.push(relight_scene::Material {
-                name: format!("dynamic triangle {index}"),
-                albedo: *albedo,
-                ..Default::default()
-            });
-            merged.mesh.material_ids.push(first_material + index as u32);
-        }
+        merged.materials.extend_from_slice(&self.materials);
+        merged
+            .mesh
+            .material_ids
+            .extend(self.material_ids.iter().map(|&id| id + first_material));
         merged
     }
 }

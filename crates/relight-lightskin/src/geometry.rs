@@ -52,7 +52,8 @@ impl Geometry<'_> {
                 nearest = Some(SurfaceHit {
                     position: origin + direction * hit.t,
                     normal: world.triangle_normals[hit.triangle as usize],
-                    albedo: world.triangle_albedos[hit.triangle as usize],
+                    albedo: world.materials[world.material_ids[hit.triangle as usize] as usize]
+                        .albedo,
                     distance: hit.t,
                 });
             }
