@@ -9,6 +9,7 @@ pub fn kinds() -> &'static [&'static dyn TechniqueKind] {
         &ReferenceKind,
         &relight_prm::PrmKind,
         &relight_lightskin::LightSkinKind,
+        &relight_srp::SrpKind,
     ]
 }
 

@@ -8,62 +8,13 @@
 
 use relight_core::Rgb;
 use relight_prm::PrmKind;
-use relight_render::metrics::{error_norms, relative_noise};
+use relight_render::metrics::error_norms;
+use relight_render::study::{cached_reference_lightmap, parse_pairs};
 use relight_scene::atlas::TexelDensity;
-use relight_technique::{
-    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, TechniqueKind,
-};
-use relight_trace::path::PathSettings;
+use relight_technique::{ContextSettings, Frame, NoProgress, SceneContext, TechniqueKind};
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
-
-fn cached_reference(context: &SceneContext, key: &str, samples: u32) -> (Vec<Rgb>, f64) {
-    let file = std::env::temp_dir().join(format!("relight-study-{key}.f32"));
-    let count = context.atlas.receivers.len();
-    if let Ok(bytes) = std::fs::read(&file) {
-        if bytes.len() == (count * 3 + 1) * 4 {
-            let values: Vec<f32> = bytes
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
-                .collect();
-            let noise = values[count * 3] as f64;
-            let mean = values[..count * 3]
-                .chunks_exact(3)
-                .map(|v| Rgb::new(v[0], v[1], v[2]))
-                .collect();
-            return (mean, noise);
-        }
-    }
-    let lights = context.scene.lights.clone();
-    let reference = reference_receiver_irradiance(
-        context,
-        &lights,
-        PathSettings::default(),
-        samples,
-        &NoProgress,
-    );
-    let noise = relative_noise(&reference.mean, &reference.standard_error);
-    let mut bytes = Vec::with_capacity((count * 3 + 1) * 4);
-    for value in &reference.mean {
-        for component in value.to_array() {
-            bytes.extend_from_slice(&component.to_le_bytes());
-        }
-    }
-    bytes.extend_from_slice(&(noise as f32).to_le_bytes());
-    std::fs::write(&file, bytes).expect("write the reference cache");
-    (reference.mean, noise)
-}
-
-fn parse(set: &str) -> Vec<(String, String)> {
-    set.split(',')
-        .filter(|part| !part.is_empty())
-        .map(|part| {
-            let (key, value) = part.split_once('=').expect("key=value");
-            (key.to_string(), value.to_string())
-        })
-        .collect()
-}
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -79,14 +30,7 @@ fn main() {
         ..ContextSettings::default()
     };
     let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
-    let key = format!(
-        "{}-{}-{}-{}",
-        context.fingerprint(),
-        context.atlas.width,
-        context.atlas.receivers.len(),
-        samples
-    );
-    let (reference, noise) = cached_reference(&context, &key, samples);
+    let (reference, noise) = cached_reference_lightmap(&context, samples);
     println!(
         "{scene_path}: {} receivers, reference {samples} paths, noise {:.2} %",
         reference.len(),
@@ -96,7 +40,7 @@ fn main() {
     let mut first: Option<Vec<Rgb>> = None;
     let mut bakes: HashMap<Vec<(String, String)>, Vec<u8>> = HashMap::new();
     for set in sets {
-        let params = parse(set);
+        let params = parse_pairs(set);
         let bake_params: Vec<(String, String)> = params
             .iter()
             .filter(|(key, _)| relight_prm::BAKE_PARAMETERS.contains(&key.as_str()))

@@ -10,5 +10,6 @@
 pub mod image;
 pub mod metrics;
 pub mod render;
+pub mod study;
 
 pub use image::{Image, ImageError};

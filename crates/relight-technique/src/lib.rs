@@ -17,6 +17,7 @@ mod builtin;
 mod context;
 mod interface;
 mod params;
+mod payload;
 
 pub use bakefile::{
     read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,
@@ -27,3 +28,4 @@ pub use builtin::{
 pub use context::{ContextSettings, SceneContext};
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
+pub use payload::{PayloadReader, PayloadWriter};

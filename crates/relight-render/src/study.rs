@@ -1,0 +1,80 @@
+//! Helpers for parameter studies: a path-traced reference lightmap cached
+//! on disk (it costs far more than the bakes being compared) and
+//! `key=value,key=value` parameter lists.
+
+use relight_core::Rgb;
+use relight_technique::{reference_receiver_irradiance, NoProgress, SceneContext};
+use relight_trace::path::PathSettings;
+
+/// The reference indirect lightmap of `context` under its scene's lights
+/// with `samples` paths per receiver, and its own relative noise; cached in
+/// the temporary folder under the scene fingerprint, lightmap and sample
+/// count.
+pub fn cached_reference_lightmap(context: &SceneContext, samples: u32) -> (Vec<Rgb>, f64) {
+    let key = format!(
+        "{}-{}-{}-{}",
+        context.fingerprint(),
+        context.atlas.width,
+        context.atlas.receivers.len(),
+        samples
+    );
+    let file = std::env::temp_dir().join(format!("relight-study-{key}.f32"));
+    let count = context.atlas.receivers.len();
+    if let Ok(bytes) = std::fs::read(&file) {
+        if bytes.len() == (count * 3 + 1) * 4 {
+            let values: Vec<f32> = bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+                .collect();
+            let noise = values[count * 3] as f64;
+            let mean = values[..count * 3]
+                .chunks_exact(3)
+                .map(|v| Rgb::new(v[0], v[1], v[2]))
+                .collect();
+            return (mean, noise);
+        }
+    }
+    let lights = context.scene.lights.clone();
+    let reference = reference_receiver_irradiance(
+        context,
+        &lights,
+        PathSettings::default(),
+        samples,
+        &NoProgress,
+    );
+    let noise = crate::metrics::relative_noise(&reference.mean, &reference.standard_error);
+    let mut bytes = Vec::with_capacity((count * 3 + 1) * 4);
+    for value in &reference.mean {
+        for component in value.to_array() {
+            bytes.extend_from_slice(&component.to_le_bytes());
+        }
+    }
+    bytes.extend_from_slice(&(noise as f32).to_le_bytes());
+    // A cache that cannot be written only costs the next run its time.
+    let _ = std::fs::write(&file, bytes);
+    (reference.mean, noise)
+}
+
+/// `"a=1,b=[[1,2],[3,4]]"` as key-value pairs: commas inside brackets
+/// belong to the value; parts without `=` are ignored.
+pub fn parse_pairs(list: &str) -> Vec<(String, String)> {
+    let mut parts = Vec::new();
+    let (mut depth, mut start) = (0i32, 0usize);
+    for (index, character) in list.char_indices() {
+        match character {
+            '[' => depth += 1,
+            ']' => depth -= 1,
+            ',' if depth == 0 => {
+                parts.push(&list[start..index]);
+                start = index + 1;
+            }
+            _ => {}
+        }
+    }
+    parts.push(&list[start..]);
+    parts
+        .into_iter()
+        .filter_map(|part| part.split_once('='))
+        .map(|(key, value)| (key.trim().to_string(), value.trim().to_string()))
+        .collect()
+}

@@ -1,0 +1,589 @@
+//! The SRP bake: probes, per-receiver transport compressed per cluster, and
+//! the probes' sample tables.
+
+use crate::probes::{self, PlacementSettings};
+use crate::transport::{self, TransportScratch, TransportSettings};
+use crate::SrpParams;
+use glam::{Vec2, Vec3};
+use half::f16;
+use rayon::prelude::*;
+use relight_core::sampling::{stratified_square, uniform_sphere, SampleStream};
+use relight_core::sh;
+use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
+use relight_trace::Ray;
+use std::collections::HashMap;
+use std::time::Instant;
+
+/// Payload layout version; bump when the encoding changes.
+const PAYLOAD_VERSION: u32 = 1;
+
+/// A probe sample that escapes the scene.
+pub const ESCAPED: u32 = u32::MAX;
+/// A probe sample that hits the back of a surface, whose light the
+/// lightmap (front sides only) does not hold: it counts as black.
+pub const BACK_FACE: u32 = u32::MAX - 1;
+
+/// Figures about a bake for `relight info` and the closing report.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BakeStats {
+    pub placed_probes: u32,
+    pub added_for_coverage: u32,
+    pub min_probes: u32,
+    pub receivers_short_of_probes: u32,
+    pub probes_inside_geometry: u32,
+    /// Mean number of nearby probes per receiver.
+    pub mean_nearby: f32,
+    /// Fraction of primary samples some probe could stand in for.
+    pub valid_sample_fraction: f32,
+    /// Fraction of the transport matrices' squared norm the kept principal
+    /// vectors capture.
+    pub captured_energy: f32,
+    pub seconds: f32,
+}
+
+/// Everything the run time needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SrpBake {
+    pub receiver_count: usize,
+    pub bands: usize,
+    pub radius: f32,
+    pub probes: Vec<Vec3>,
+    /// The sample directions every probe shares (stratified over the sphere).
+    pub sample_directions: Vec<Vec3>,
+    /// `sample_targets[probe * S + sample]`: index into `visible_receivers`
+    /// of the texel the sample's ray hits, or [`ESCAPED`] / [`BACK_FACE`].
+    pub sample_targets: Vec<u32>,
+    /// The receivers (lightmap texels) any probe sample hits, ascending.
+    pub visible_receivers: Vec<u32>,
+    /// Principal vectors per cluster (clusters with less keep zero rows).
+    pub rank: usize,
+    /// Receivers in cluster order; cluster c owns
+    /// `cluster_receivers[receiver_offsets[c]..receiver_offsets[c + 1]]`.
+    pub cluster_receivers: Vec<u32>,
+    pub receiver_offsets: Vec<u32>,
+    /// Probes whose columns a cluster stores (its receivers' nearby probes).
+    pub cluster_probes: Vec<u32>,
+    pub probe_offsets: Vec<u32>,
+    /// Sigma_c V^T per cluster, row-major rank x (probes x C), f16 bits;
+    /// cluster c starts at `rank * C * probe_offsets[c]`.
+    pub projection: Vec<u16>,
+    /// U_c rows in cluster-receiver order, `rank` f16 values each.
+    pub reconstruction: Vec<u16>,
+    pub stats: BakeStats,
+}
+
+/// The shared sample directions: `count` stratified directions over the
+/// sphere, the same for every probe so one basis table serves all.
+pub fn sample_directions(count: u32, seed: u64) -> Vec<Vec3> {
+    (0..count)
+        .map(|index| {
+            let mut rng = SampleStream::new(seed ^ 0x5a5a, index as u64, 0);
+            uniform_sphere(stratified_square(index, count, Vec2::ZERO, &mut rng))
+        })
+        .collect()
+}
+
+impl SrpBake {
+    pub fn build(
+        context: &SceneContext,
+        params: &SrpParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let start = Instant::now();
+        let receivers = &context.atlas.receivers;
+        if receivers.is_empty() {
+            return Err(TechniqueError::Other(
+                "the scene's lightmap has no receivers: SRP needs lit surfaces to bake for".into(),
+            ));
+        }
+        let bands = params.order as usize + 1;
+        let coefficients = sh::coefficient_count(bands);
+        progress.start("srp probe placement", 1);
+        let mut stats = BakeStats {
+            min_probes: params.min_probes,
+            ..Default::default()
+        };
+        let (probes, radius) = if params.probes.is_empty() {
+            let placement = probes::place_probes(
+                context,
+                PlacementSettings {
+                    count: params.probe_count as usize,
+                    radius: params.radius,
+                    radius_factor: params.radius_factor,
+                    min_probes: params.min_probes as usize,
+                    max_added: params.max_added_probes as usize,
+                },
+            );
+            stats.added_for_coverage = placement.added_for_coverage as u32;
+            stats.receivers_short_of_probes = placement.receivers_short_of_probes as u32;
+            (placement.probes, placement.radius)
+        } else {
+            let probes: Vec<Vec3> = params.probes.iter().map(|p| Vec3::from_array(*p)).collect();
+            let radius = if params.radius > 0.0 {
+                params.radius
+            } else {
+                // The covering distance of the given probes over the
+                // receivers, times the same factor as automatic placement.
+                let covering = receivers
+                    .positions
+                    .par_iter()
+                    .map(|position| {
+                        probes
+                            .iter()
+                            .map(|probe| probe.distance(*position))
+                            .fold(f32::INFINITY, f32::min)
+                    })
+                    .reduce(|| 0.0, f32::max);
+                (params.radius_factor * covering).max(1e-3)
+            };
+            stats.receivers_short_of_probes =
+                probes::count_short_receivers(context, &probes, radius, params.min_probes as usize)
+                    as u32;
+            (probes, radius)
+        };
+        stats.placed_probes = probes.len() as u32;
+        stats.probes_inside_geometry = probes
+            .iter()
+            .filter(|probe| probes::is_inside_geometry(context, **probe))
+            .count() as u32;
+        progress.finish();
+
+        let nearby = probes::nearby_probes(context, &probes, radius, params.max_nearby as usize);
+        stats.mean_nearby =
+            nearby.iter().map(Vec::len).sum::<usize>() as f32 / receivers.len() as f32;
+        let clusters = transport::aabb_clusters(&receivers.positions, params.cluster_size as usize);
+        let settings = TransportSettings {
+            bands,
+            samples: params.samples,
+            radius,
+            texel_jitter: params.texel_jitter,
+            seed: params.seed,
+        };
+        let rank = params.pca_vectors as usize;
+        progress.start("srp transport", receivers.len() as u64);
+        // One cluster per work item: its transport matrix exists only while
+        // it is compressed, so memory grows with the threads, not the scene.
+        let compressed: Vec<ClusterOutput> = clusters
+            .par_iter()
+            .map_init(
+                || TransportScratch::new(bands),
+                |scratch, members| {
+                    let output = bake_cluster(
+                        context,
+                        &probes,
+                        &nearby,
+                        members,
+                        &settings,
+                        rank,
+                        coefficients,
+                        scratch,
+                    );
+                    progress.advance(members.len() as u64);
+                    output
+                },
+            )
+            .collect();
+        progress.finish();
+
+        let mut bake = Self {
+            receiver_count: receivers.len(),
+            bands,
+            radius,
+            probes,
+            sample_directions: Vec::new(),
+            sample_targets: Vec::new(),
+            visible_receivers: Vec::new(),
+            rank,
+            cluster_receivers: Vec::with_capacity(receivers.len()),
+            receiver_offsets: vec![0],
+            cluster_probes: Vec::new(),
+            probe_offsets: vec![0],
+            projection: Vec::new(),
+            reconstruction: Vec::with_capacity(receivers.len() * rank),
+            stats,
+        };
+        let (mut energy, mut captured, mut valid_samples) = (0.0f64, 0.0f64, 0u64);
+        for (members, output) in clusters.iter().zip(compressed) {
+            bake.cluster_receivers.extend_from_slice(members);
+            bake.receiver_offsets
+                .push(bake.cluster_receivers.len() as u32);
+            bake.cluster_probes.extend_from_slice(&output.probes);
+            bake.probe_offsets.push(bake.cluster_probes.len() as u32);
+            bake.projection.extend(output.projection);
+            bake.reconstruction.extend(output.reconstruction);
+            energy += output.energy;
+            captured += output.captured;
+            valid_samples += output.valid_samples;
+        }
+        bake.stats.captured_energy = if energy > 0.0 {
+            (captured / energy) as f32
+        } else {
+            1.0
+        };
+        bake.stats.valid_sample_fraction =
+            valid_samples as f32 / (receivers.len() as f32 * params.samples as f32);
+
+        progress.start("srp probe sample tables", bake.probes.len() as u64);
+        bake.sample_directions = sample_directions(params.probe_samples, params.seed);
+        let targets = sample_tables(context, &bake.probes, &bake.sample_directions, progress);
+        progress.finish();
+        // Compact the hit receivers so the direct light is evaluated only
+        // where probes look.
+        let mut compact = HashMap::new();
+        let mut hit: Vec<u32> = targets.iter().copied().filter(|&t| t < BACK_FACE).collect();
+        hit.sort_unstable();
+        hit.dedup();
+        for (index, receiver) in hit.iter().enumerate() {
+            compact.insert(*receiver, index as u32);
+        }
+        bake.sample_targets = targets
+            .into_iter()
+            .map(|target| {
+                if target < BACK_FACE {
+                    compact[&target]
+                } else {
+                    target
+                }
+            })
+            .collect();
+        bake.visible_receivers = hit;
+        bake.stats.seconds = start.elapsed().as_secs_f32();
+        Ok(bake)
+    }
+
+    pub fn cluster_count(&self) -> usize {
+        self.receiver_offsets.len() - 1
+    }
+
+    pub fn coefficients(&self) -> usize {
+        sh::coefficient_count(self.bands)
+    }
+
+    /// Little-endian payload for the bake file.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut writer = PayloadWriter::with_capacity(
+            self.projection.len() * 2
+                + self.reconstruction.len() * 2
+                + self.sample_targets.len() * 4,
+        );
+        writer.u32(PAYLOAD_VERSION);
+        writer.u32(self.receiver_count as u32);
+        writer.u32(self.bands as u32);
+        writer.f32(self.radius);
+        writer.u32(self.rank as u32);
+        writer.vectors(&self.probes);
+        writer.vectors(&self.sample_directions);
+        writer.u32s(&self.sample_targets);
+        writer.u32s(&self.visible_receivers);
+        writer.u32s(&self.cluster_receivers);
+        writer.u32s(&self.receiver_offsets);
+        writer.u32s(&self.cluster_probes);
+        writer.u32s(&self.probe_offsets);
+        writer.halves(&self.projection);
+        writer.halves(&self.reconstruction);
+        let stats = &self.stats;
+        for value in [
+            stats.placed_probes,
+            stats.added_for_coverage,
+            stats.min_probes,
+            stats.receivers_short_of_probes,
+            stats.probes_inside_geometry,
+        ] {
+            writer.u32(value);
+        }
+        writer.f32s(&[
+            stats.mean_nearby,
+            stats.valid_sample_fraction,
+            stats.captured_energy,
+            stats.seconds,
+        ]);
+        writer.finish()
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = PayloadReader::new(bytes, "srp");
+        let version = reader.u32()?;
+        if version != PAYLOAD_VERSION {
+            return Err(reader.corrupt(&format!(
+                "SRP payload version {version}, this relight reads {PAYLOAD_VERSION}"
+            )));
+        }
+        let receiver_count = reader.u32()? as usize;
+        let bands = reader.u32()? as usize;
+        let radius = reader.finite()?;
+        let rank = reader.u32()? as usize;
+        let probes = reader.vectors()?;
+        let sample_directions = reader.vectors()?;
+        let sample_targets = reader.u32s()?;
+        let visible_receivers = reader.u32s()?;
+        let cluster_receivers = reader.u32s()?;
+        let receiver_offsets = reader.u32s()?;
+        let cluster_probes = reader.u32s()?;
+        let probe_offsets = reader.u32s()?;
+        let projection = reader.halves()?;
+        let reconstruction = reader.halves()?;
+        let mut counts = [0u32; 5];
+        for count in &mut counts {
+            *count = reader.u32()?;
+        }
+        let floats = reader.f32s()?;
+        reader.end()?;
+        let bake = Self {
+            receiver_count,
+            bands,
+            radius,
+            probes,
+            sample_directions,
+            sample_targets,
+            visible_receivers,
+            rank,
+            cluster_receivers,
+            receiver_offsets,
+            cluster_probes,
+            probe_offsets,
+            projection,
+            reconstruction,
+            stats: BakeStats {
+                placed_probes: counts[0],
+                added_for_coverage: counts[1],
+                min_probes: counts[2],
+                receivers_short_of_probes: counts[3],
+                probes_inside_geometry: counts[4],
+                mean_nearby: floats.first().copied().unwrap_or(0.0),
+                valid_sample_fraction: floats.get(1).copied().unwrap_or(0.0),
+                captured_energy: floats.get(2).copied().unwrap_or(0.0),
+                seconds: floats.get(3).copied().unwrap_or(0.0),
+            },
+        };
+        bake.validate().map_err(|message| reader.corrupt(message))?;
+        Ok(bake)
+    }
+
+    /// Every index the run time follows stays in bounds.
+    fn validate(&self) -> Result<(), &'static str> {
+        if !(1..=sh::MAX_BANDS).contains(&self.bands) {
+            return Err("SH bands outside 1..=8");
+        }
+        if self.radius.is_nan() || self.radius <= 0.0 {
+            return Err("the cut-off radius is not positive");
+        }
+        let samples = self.sample_directions.len();
+        if self.sample_targets.len() != samples * self.probes.len() {
+            return Err("sample tables do not match probes x samples");
+        }
+        if self
+            .sample_targets
+            .iter()
+            .any(|&target| target < BACK_FACE && target as usize >= self.visible_receivers.len())
+            || self
+                .visible_receivers
+                .iter()
+                .any(|&receiver| receiver as usize >= self.receiver_count)
+        {
+            return Err("a probe sample names a texel that does not exist");
+        }
+        let monotonic = |offsets: &[u32], total: usize| {
+            offsets.first() == Some(&0)
+                && offsets.windows(2).all(|pair| pair[0] <= pair[1])
+                && offsets.last().map(|&last| last as usize) == Some(total)
+        };
+        if self.receiver_offsets.len() != self.probe_offsets.len()
+            || !monotonic(&self.receiver_offsets, self.cluster_receivers.len())
+            || !monotonic(&self.probe_offsets, self.cluster_probes.len())
+        {
+            return Err("cluster offsets are inconsistent");
+        }
+        if self.cluster_receivers.len() != self.receiver_count
+            || self
+                .cluster_receivers
+                .iter()
+                .any(|&receiver| receiver as usize >= self.receiver_count)
+        {
+            return Err("clusters do not cover the receivers");
+        }
+        let mut seen = vec![false; self.receiver_count];
+        for &receiver in &self.cluster_receivers {
+            if std::mem::replace(&mut seen[receiver as usize], true) {
+                return Err("a receiver is in two clusters");
+            }
+        }
+        if self
+            .cluster_probes
+            .iter()
+            .any(|&probe| probe as usize >= self.probes.len())
+        {
+            return Err("a cluster names a probe that does not exist");
+        }
+        let coefficients = sh::coefficient_count(self.bands);
+        if self.projection.len() != self.rank * coefficients * self.cluster_probes.len()
+            || self.reconstruction.len() != self.rank * self.receiver_count
+        {
+            return Err("compressed matrices do not match their sizes");
+        }
+        Ok(())
+    }
+}
+
+/// One compressed cluster.
+struct ClusterOutput {
+    probes: Vec<u32>,
+    projection: Vec<u16>,
+    reconstruction: Vec<u16>,
+    energy: f64,
+    captured: f64,
+    valid_samples: u64,
+}
+
+/// The transport matrix of one cluster, row per receiver, columns the
+/// union of its receivers' nearby probes times C (zero where a receiver does
+/// not use a probe); returns (matrix, column probes, valid samples).
+pub fn cluster_transport(
+    context: &SceneContext,
+    probes: &[Vec3],
+    nearby: &[Vec<u32>],
+    members: &[u32],
+    settings: &TransportSettings,
+    scratch: &mut TransportScratch,
+) -> (Vec<f32>, Vec<u32>, u64) {
+    let coefficients = sh::coefficient_count(settings.bands);
+    let mut columns: Vec<u32> = members
+        .iter()
+        .flat_map(|&receiver| nearby[receiver as usize].iter().copied())
+        .collect();
+    columns.sort_unstable();
+    columns.dedup();
+    let width = columns.len() * coefficients;
+    let mut matrix = vec![0.0f32; members.len() * width];
+    let mut row = Vec::new();
+    let mut valid_samples = 0u64;
+    for (local, &receiver) in members.iter().enumerate() {
+        let own = &nearby[receiver as usize];
+        row.clear();
+        row.resize(own.len() * coefficients, 0.0);
+        valid_samples += transport::transport_row(
+            context,
+            probes,
+            receiver as usize,
+            own,
+            settings,
+            scratch,
+            &mut row,
+        ) as u64;
+        let target = &mut matrix[local * width..(local + 1) * width];
+        for (slot, probe) in own.iter().enumerate() {
+            let column = columns
+                .binary_search(probe)
+                .expect("nearby probe is a column");
+            target[column * coefficients..(column + 1) * coefficients]
+                .copy_from_slice(&row[slot * coefficients..(slot + 1) * coefficients]);
+        }
+    }
+    (matrix, columns, valid_samples)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn bake_cluster(
+    context: &SceneContext,
+    probes: &[Vec3],
+    nearby: &[Vec<u32>],
+    members: &[u32],
+    settings: &TransportSettings,
+    rank: usize,
+    coefficients: usize,
+    scratch: &mut TransportScratch,
+) -> ClusterOutput {
+    let (matrix, columns, valid_samples) =
+        cluster_transport(context, probes, nearby, members, settings, scratch);
+    let width = columns.len() * coefficients;
+    let compressed = transport::compress(&matrix, members.len(), width, rank);
+    let energy: f64 = matrix.iter().map(|&v| (v as f64) * (v as f64)).sum();
+    // ||T_k||^2 = sum of the kept sigma^2 = squared norm of the projection.
+    let captured: f64 = compressed
+        .projection
+        .iter()
+        .map(|&v| (v as f64) * (v as f64))
+        .sum();
+    // Clusters with fewer than `rank` vectors pad with zeros so every
+    // cluster has the same shape at run time.
+    let mut projection = vec![0u16; rank * width];
+    for k in 0..compressed.rank {
+        for column in 0..width {
+            projection[k * width + column] =
+                f16::from_f32(compressed.projection[k * width + column]).to_bits();
+        }
+    }
+    let mut reconstruction = vec![0u16; members.len() * rank];
+    for row in 0..members.len() {
+        for k in 0..compressed.rank {
+            reconstruction[row * rank + k] =
+                f16::from_f32(compressed.reconstruction[row * compressed.rank + k]).to_bits();
+        }
+    }
+    ClusterOutput {
+        probes: columns,
+        projection,
+        reconstruction,
+        energy,
+        captured: captured.min(energy),
+        valid_samples,
+    }
+}
+
+/// For every probe and shared direction, the receiver whose texel the ray
+/// hits (or [`ESCAPED`] / [`BACK_FACE`]).
+fn sample_tables(
+    context: &SceneContext,
+    probes: &[Vec3],
+    directions: &[Vec3],
+    progress: &dyn Progress,
+) -> Vec<u32> {
+    let atlas = &context.atlas;
+    // Gutter texels point at the covered texel they copy.
+    let gutter: HashMap<u32, u32> = atlas.dilation.iter().copied().collect();
+    let receiver_at = |triangle: u32, barycentric: Vec2| -> u32 {
+        let uv = atlas.uv_of(triangle, barycentric);
+        let x = (uv.x.floor() as i64).clamp(0, atlas.width as i64 - 1) as u32;
+        let y = (uv.y.floor() as i64).clamp(0, atlas.height as i64 - 1) as u32;
+        let texel = y * atlas.width + x;
+        let mut receiver = atlas.receiver_of_texel[texel as usize];
+        if receiver == u32::MAX {
+            if let Some(&source) = gutter.get(&texel) {
+                receiver = atlas.receiver_of_texel[source as usize];
+            }
+        }
+        // A hit on a texel nothing covers (thin slivers) counts as black.
+        if receiver == u32::MAX {
+            BACK_FACE
+        } else {
+            receiver
+        }
+    };
+    probes
+        .par_iter()
+        .flat_map_iter(|&probe| {
+            let targets: Vec<u32> = directions
+                .iter()
+                .map(|&direction| {
+                    let ray = Ray {
+                        origin: probe,
+                        direction,
+                        t_max: f32::INFINITY,
+                    };
+                    match context.bvh.intersect(&ray) {
+                        None => ESCAPED,
+                        Some(hit) => {
+                            let normal = context.scene.mesh.geometric_normal(hit.triangle as usize);
+                            if normal.dot(direction) >= 0.0 {
+                                BACK_FACE
+                            } else {
+                                receiver_at(hit.triangle, hit.barycentric)
+                            }
+                        }
+                    }
+                })
+                .collect();
+            progress.advance(1);
+            targets
+        })
+        .collect()
+}

@@ -1,0 +1,549 @@
+//! The SRP run time: direct light where probes look, probe projection into
+//! SH, per-cluster projection onto the principal vectors, reconstruction
+//! per receiver, dilation.
+
+use crate::bake::{SrpBake, BACK_FACE};
+use crate::kernels;
+use crate::probes::falloff_weight;
+use glam::Vec3;
+use rayon::prelude::*;
+use relight_core::{sh, Rgb};
+use relight_technique::{
+    Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
+};
+use relight_trace::Ray;
+use std::f32::consts::{FRAC_1_PI, PI};
+use std::sync::Arc;
+
+/// Sorted receivers per reconstruction work item.
+const RECEIVER_CHUNK: usize = 2048;
+
+/// Run-time settings (one bake serves every value of them).
+#[derive(Clone, Copy, Debug)]
+pub struct RuntimeSettings {
+    /// 1: single bounce; more: last frame's indirect light feeds the probes
+    /// (and the first update runs this many passes so it starts settled).
+    pub bounces: u32,
+    /// Probes refreshed per frame, round robin; 0 = all.
+    pub probe_budget: u32,
+    /// Specular reflectance of materials with a Phong exponent.
+    pub specular: f32,
+}
+
+pub struct Srp {
+    context: Arc<SceneContext>,
+    bake: SrpBake,
+    settings: RuntimeSettings,
+    coefficients: usize,
+    /// Y_j(direction_s) * 4 pi / S for every shared sample direction.
+    basis_table: Vec<f32>,
+    /// Positions, normals and albedos of the probe-visible receivers.
+    visible_positions: Vec<Vec3>,
+    visible_normals: Vec<Vec3>,
+    visible_albedos: Vec<Rgb>,
+    visible_direct: Vec<Rgb>,
+    /// Outgoing radiance (albedo / pi x irradiance) at probe-visible texels.
+    visible_radiance: Vec<Rgb>,
+    /// Probe radiance vector: `probe_radiance[(probe * 3 + channel) * C + j]`.
+    probe_radiance: Vec<f32>,
+    /// Light basis vectors: `light_basis[(cluster * 3 + channel) * rank + k]`.
+    light_basis: Vec<f32>,
+    receiver_values: Vec<Rgb>,
+    lightmap: Vec<Rgb>,
+    timings: StageTimings,
+    /// Round-robin position of staggered updates.
+    next_probe: usize,
+    /// Probes refreshed this frame, and the texels they read.
+    refreshing: Vec<u32>,
+    needed: Vec<u32>,
+    needed_stamp: Vec<u32>,
+    stamp: u32,
+    gathered_positions: Vec<Vec3>,
+    gathered_normals: Vec<Vec3>,
+    gathered_direct: Vec<Rgb>,
+    updates: u64,
+}
+
+impl Srp {
+    pub fn new(context: Arc<SceneContext>, bake: SrpBake, settings: RuntimeSettings) -> Self {
+        let coefficients = bake.coefficients();
+        let samples = bake.sample_directions.len();
+        let weight = 4.0 * PI / samples.max(1) as f32;
+        let mut basis_table = vec![0.0f32; samples * coefficients];
+        for (direction, row) in bake
+            .sample_directions
+            .iter()
+            .zip(basis_table.chunks_exact_mut(coefficients))
+        {
+            sh::evaluate(*direction, bake.bands, row);
+            for value in row.iter_mut() {
+                *value *= weight;
+            }
+        }
+        let receivers = &context.atlas.receivers;
+        let visible = &bake.visible_receivers;
+        let pick = |values: &[Vec3]| -> Vec<Vec3> {
+            visible.iter().map(|&r| values[r as usize]).collect()
+        };
+        let visible_positions = pick(&receivers.positions);
+        let visible_normals = pick(&receivers.normals);
+        let visible_albedos = pick(&receivers.albedos);
+        let probe_count = bake.probes.len();
+        let cluster_count = bake.cluster_count();
+        Self {
+            basis_table,
+            visible_direct: vec![Rgb::ZERO; visible.len()],
+            visible_radiance: vec![Rgb::ZERO; visible.len()],
+            needed_stamp: vec![0; visible.len()],
+            visible_positions,
+            visible_normals,
+            visible_albedos,
+            probe_radiance: vec![0.0; probe_count * 3 * coefficients],
+            light_basis: vec![0.0; cluster_count * 3 * bake.rank],
+            receiver_values: vec![Rgb::ZERO; bake.receiver_count],
+            lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
+            timings: StageTimings::default(),
+            next_probe: 0,
+            refreshing: Vec::with_capacity(probe_count),
+            needed: Vec::new(),
+            stamp: 0,
+            gathered_positions: Vec::new(),
+            gathered_normals: Vec::new(),
+            gathered_direct: Vec::new(),
+            updates: 0,
+            coefficients,
+            settings,
+            context,
+            bake,
+        }
+    }
+
+    pub fn bake(&self) -> &SrpBake {
+        &self.bake
+    }
+
+    /// The probe radiance vector (lambda) after the last update.
+    pub fn probe_radiance(&self) -> &[f32] {
+        &self.probe_radiance
+    }
+
+    /// Chooses this frame's probes and the probe-visible texels they read.
+    fn select_probes(&mut self) {
+        let probe_count = self.bake.probes.len();
+        self.refreshing.clear();
+        let budget = self.settings.probe_budget as usize;
+        // The first update refreshes everything: there is nothing stale to
+        // keep.
+        if budget == 0 || budget >= probe_count || self.updates == 0 {
+            self.refreshing.extend(0..probe_count as u32);
+            self.needed.clear();
+            self.needed
+                .extend(0..self.bake.visible_receivers.len() as u32);
+            return;
+        }
+        for offset in 0..budget {
+            self.refreshing
+                .push(((self.next_probe + offset) % probe_count) as u32);
+        }
+        self.next_probe = (self.next_probe + budget) % probe_count;
+        self.stamp = self.stamp.wrapping_add(1);
+        if self.stamp == 0 {
+            self.needed_stamp.fill(0);
+            self.stamp = 1;
+        }
+        self.needed.clear();
+        let samples = self.bake.sample_directions.len();
+        for &probe in &self.refreshing {
+            let targets =
+                &self.bake.sample_targets[probe as usize * samples..(probe as usize + 1) * samples];
+            for &target in targets {
+                if target < BACK_FACE && self.needed_stamp[target as usize] != self.stamp {
+                    self.needed_stamp[target as usize] = self.stamp;
+                    self.needed.push(target);
+                }
+            }
+        }
+    }
+
+    /// Direct irradiance at the needed texels.
+    fn direct_light(&mut self, frame: &Frame) {
+        let direct = self.context.direct();
+        if self.needed.len() == self.visible_positions.len() {
+            direct.irradiance_batch(
+                frame.lights,
+                &self.visible_positions,
+                &self.visible_normals,
+                &mut self.visible_direct,
+            );
+            return;
+        }
+        self.gathered_positions.clear();
+        self.gathered_normals.clear();
+        for &texel in &self.needed {
+            self.gathered_positions
+                .push(self.visible_positions[texel as usize]);
+            self.gathered_normals
+                .push(self.visible_normals[texel as usize]);
+        }
+        self.gathered_direct.clear();
+        self.gathered_direct.resize(self.needed.len(), Rgb::ZERO);
+        direct.irradiance_batch(
+            frame.lights,
+            &self.gathered_positions,
+            &self.gathered_normals,
+            &mut self.gathered_direct,
+        );
+        for (&texel, &value) in self.needed.iter().zip(&self.gathered_direct) {
+            self.visible_direct[texel as usize] = value;
+        }
+    }
+
+    /// Radiance leaving the needed texels, with last frame's indirect light
+    /// when bounces feed back.
+    fn texel_radiance(&mut self) {
+        let feedback = self.settings.bounces > 1;
+        for &texel in &self.needed {
+            let texel = texel as usize;
+            let mut irradiance = self.visible_direct[texel];
+            if feedback {
+                irradiance += self.receiver_values[self.bake.visible_receivers[texel] as usize];
+            }
+            self.visible_radiance[texel] = self.visible_albedos[texel] * irradiance * FRAC_1_PI;
+        }
+    }
+
+    /// Equation 5.1 over the shared sample directions for this frame's
+    /// probes.
+    fn project_probes(&mut self) {
+        let coefficients = self.coefficients;
+        let samples = self.bake.sample_directions.len();
+        let targets = &self.bake.sample_targets;
+        let radiance = &self.visible_radiance;
+        let basis = &self.basis_table;
+        let refreshing = &self.refreshing;
+        let all = refreshing.len() == self.bake.probes.len();
+        let project = |probe: usize, out: &mut [f32]| {
+            kernels::project_probe(
+                &targets[probe * samples..(probe + 1) * samples],
+                radiance,
+                basis,
+                coefficients,
+                out,
+            );
+        };
+        if all {
+            self.probe_radiance
+                .par_chunks_mut(3 * coefficients)
+                .enumerate()
+                .for_each(|(probe, out)| project(probe, out));
+        } else {
+            let results: Vec<(u32, Vec<f32>)> = refreshing
+                .par_iter()
+                .map(|&probe| {
+                    let mut out = vec![0.0f32; 3 * coefficients];
+                    project(probe as usize, &mut out);
+                    (probe, out)
+                })
+                .collect();
+            for (probe, values) in results {
+                let start = probe as usize * 3 * coefficients;
+                self.probe_radiance[start..start + 3 * coefficients].copy_from_slice(&values);
+            }
+        }
+    }
+
+    /// Light basis vector of every cluster: Sigma_c V^T times the probe
+    /// radiance of the cluster's probes (section 4.5.2).
+    fn project_clusters(&mut self) {
+        let bake = &self.bake;
+        let rank = bake.rank;
+        let coefficients = self.coefficients;
+        let probe_radiance = &self.probe_radiance;
+        self.light_basis
+            .par_chunks_mut(3 * rank)
+            .enumerate()
+            .for_each_init(Vec::new, |gathered, (cluster, out)| {
+                let probes = &bake.cluster_probes[bake.probe_offsets[cluster] as usize
+                    ..bake.probe_offsets[cluster + 1] as usize];
+                let width = probes.len() * coefficients;
+                // Channel-major copy of the cluster's probe radiance, so each
+                // projection row is three contiguous dot products.
+                gathered.clear();
+                gathered.resize(3 * width, 0.0f32);
+                for (slot, &probe) in probes.iter().enumerate() {
+                    for channel in 0..3 {
+                        let source = (probe as usize * 3 + channel) * coefficients;
+                        let target = channel * width + slot * coefficients;
+                        gathered[target..target + coefficients]
+                            .copy_from_slice(&probe_radiance[source..source + coefficients]);
+                    }
+                }
+                let start = bake.probe_offsets[cluster] as usize * coefficients * rank;
+                let matrix = &bake.projection[start..start + rank * width];
+                kernels::project_cluster(matrix, gathered, width, rank, out);
+            });
+    }
+
+    /// Irradiance per receiver: U_c times the cluster's light basis.
+    fn reconstruct(&mut self) {
+        let bake = &self.bake;
+        let rank = bake.rank;
+        let light_basis = &self.light_basis;
+        let output = kernels::DisjointWriter::new(&mut self.receiver_values);
+        let total = bake.cluster_receivers.len();
+        (0..total.div_ceil(RECEIVER_CHUNK))
+            .into_par_iter()
+            .for_each(|chunk| {
+                let start = chunk * RECEIVER_CHUNK;
+                let end = (start + RECEIVER_CHUNK).min(total);
+                let mut cluster = bake
+                    .receiver_offsets
+                    .partition_point(|&offset| offset as usize <= start)
+                    - 1;
+                let mut index = start;
+                while index < end {
+                    let cluster_end = (bake.receiver_offsets[cluster + 1] as usize).min(end);
+                    let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
+                    for sorted in index..cluster_end {
+                        let weights = &bake.reconstruction[sorted * rank..(sorted + 1) * rank];
+                        let irradiance = kernels::reconstruct(weights, basis, rank);
+                        // SAFETY: cluster_receivers is a permutation (checked
+                        // when the bake is decoded), so every receiver is
+                        // written by exactly one sorted index.
+                        unsafe {
+                            output.write(
+                                bake.cluster_receivers[sorted] as usize,
+                                irradiance.max(Rgb::ZERO),
+                            )
+                        };
+                    }
+                    index = cluster_end;
+                    cluster += 1;
+                }
+            });
+    }
+
+    /// Probe weights for a point in space: equation 4.4 within the cut-off
+    /// radius, times visibility; the nearest visible probe when none is
+    /// within it.
+    fn probe_weights(&self, position: Vec3, normal: Vec3, out: &mut Vec<(usize, f32)>) {
+        out.clear();
+        let epsilon = relight_trace::direct::ray_epsilon_for(&self.context.bvh);
+        let origin = position + normal * epsilon;
+        let sees = |probe: Vec3| {
+            let ray = Ray {
+                origin,
+                direction: probe - origin,
+                t_max: 1.0,
+            };
+            !self.context.bvh.occluded(&ray)
+        };
+        let radius = self.bake.radius;
+        let mut nearest: Option<(usize, f32)> = None;
+        for (index, &probe) in self.bake.probes.iter().enumerate() {
+            let distance = probe.distance(position);
+            if distance < radius {
+                let weight = falloff_weight(distance / radius);
+                if weight > 0.0 && sees(probe) {
+                    out.push((index, weight));
+                }
+            }
+            if nearest.is_none_or(|(_, best)| distance < best) {
+                nearest = Some((index, distance));
+            }
+        }
+        if out.is_empty() {
+            if let Some((index, _)) = nearest {
+                out.push((index, 1.0));
+            }
+        }
+    }
+
+    /// Sum over probes of weight x SH radiance filtered per band by
+    /// `band_factor`, evaluated in `direction`: the probes' radiance field
+    /// convolved with a zonal kernel.
+    fn filtered_probe_radiance(
+        &self,
+        weights: &[(usize, f32)],
+        direction: Vec3,
+        bands: usize,
+        band_factor: impl Fn(usize) -> f32,
+    ) -> Rgb {
+        let mut basis = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
+        let bands = bands.min(self.bake.bands);
+        let count = sh::coefficient_count(bands);
+        sh::evaluate(direction, bands, &mut basis[..count]);
+        let mut factors = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
+        for band in 0..bands {
+            let factor = band_factor(band);
+            for order in 0..2 * band + 1 {
+                factors[band * band + order] = factor;
+            }
+        }
+        let total: f32 = weights.iter().map(|(_, weight)| weight).sum();
+        let mut result = Rgb::ZERO;
+        for &(probe, weight) in weights {
+            for channel in 0..3 {
+                let start = (probe * 3 + channel) * self.coefficients;
+                let values = &self.probe_radiance[start..start + count];
+                let sum: f32 = values
+                    .iter()
+                    .zip(&basis[..count])
+                    .zip(&factors[..count])
+                    .map(|((value, basis), factor)| value * basis * factor)
+                    .sum();
+                result[channel] += weight * sum;
+            }
+        }
+        (result / total.max(f32::MIN_POSITIVE)).max(Rgb::ZERO)
+    }
+}
+
+/// Zonal factor of band `band` for the normalised Phong lobe
+/// (k + 1) / (2 pi) cos^k around the reflection direction:
+/// sqrt(4 pi / (2l + 1)) times its zonal coefficient, which is
+/// (k + 1) times the integral of mu^k P_l(mu) over [0, 1] (midpoint rule).
+pub fn phong_band_factor(exponent: f32, band: usize) -> f32 {
+    const STEPS: usize = 256;
+    let mut sum = 0.0f64;
+    for step in 0..STEPS {
+        let mu = (step as f64 + 0.5) / STEPS as f64;
+        // Legendre P_l(mu) by the three-term recurrence.
+        let (mut previous, mut current) = (1.0f64, mu);
+        let legendre = if band == 0 {
+            1.0
+        } else {
+            for l in 1..band {
+                let next =
+                    ((2 * l + 1) as f64 * mu * current - l as f64 * previous) / (l + 1) as f64;
+                previous = current;
+                current = next;
+            }
+            current
+        };
+        sum += mu.powf(exponent as f64) * legendre;
+    }
+    ((exponent as f64 + 1.0) * sum / STEPS as f64) as f32
+}
+
+impl Technique for Srp {
+    fn name(&self) -> &'static str {
+        "srp"
+    }
+
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let mut timings = std::mem::take(&mut self.timings);
+        timings.clear();
+        timings.time("direct lightmap", || {
+            self.select_probes();
+            self.direct_light(frame);
+        });
+        // The first update runs every bounce, so a single frame is settled;
+        // later frames add one bounce each on top of the last.
+        let passes = if self.updates == 0 {
+            self.settings.bounces.max(1)
+        } else {
+            1
+        };
+        for pass in 0..passes {
+            if pass > 0 {
+                self.needed.clear();
+                self.needed
+                    .extend(0..self.bake.visible_receivers.len() as u32);
+            }
+            timings.time("probe projection", || {
+                self.texel_radiance();
+                self.project_probes();
+            });
+            timings.time("cluster projection", || self.project_clusters());
+            timings.time("reconstruction", || self.reconstruct());
+        }
+        timings.time("dilation", || {
+            self.context
+                .atlas
+                .scatter_into(&self.receiver_values, &mut self.lightmap);
+        });
+        self.timings = timings;
+        self.updates += 1;
+        Ok(())
+    }
+
+    fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
+        self.context
+            .atlas
+            .sample(&self.lightmap, point.triangle, point.barycentric)
+    }
+
+    /// Distance-weighted probes, each probe's radiance convolved with the
+    /// cosine lobe around `normal` (Ramamoorthi and Hanrahan): no parallax
+    /// correction and no mutual visibility beyond the point seeing the
+    /// probe, so an approximation for dynamic objects.
+    fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
+        let mut weights = Vec::new();
+        self.probe_weights(position, normal, &mut weights);
+        self.filtered_probe_radiance(&weights, normal, 3, sh::cosine_lobe_factor)
+    }
+
+    /// Glossy reflection of the probes' radiance: the interpolated probe SH
+    /// convolved with the normalised Phong lobe around the mirror direction
+    /// (up to 5 bands, the paper's order-4 limit), times `specular`.
+    fn glossy_radiance(
+        &self,
+        point: &SurfacePoint,
+        toward_viewer: Vec3,
+        exponent: f32,
+    ) -> Option<Rgb> {
+        if self.settings.specular <= 0.0 || exponent <= 1.0 {
+            return None;
+        }
+        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
+            .normalize_or_zero();
+        let mut weights = Vec::new();
+        self.probe_weights(point.position, point.normal, &mut weights);
+        Some(
+            self.filtered_probe_radiance(&weights, reflected, 5, |band| {
+                phong_band_factor(exponent, band)
+            }) * self.settings.specular,
+        )
+    }
+
+    fn receiver_irradiance(&self) -> Option<&[Rgb]> {
+        Some(&self.receiver_values)
+    }
+
+    fn timings(&self) -> &StageTimings {
+        &self.timings
+    }
+
+    fn memory(&self) -> Vec<MemoryEntry> {
+        let bake = &self.bake;
+        vec![
+            MemoryEntry::new(
+                "cluster projection matrices (f16)",
+                bake.projection.len() * 2,
+            ),
+            MemoryEntry::new(
+                "receiver reconstruction matrices (f16)",
+                bake.reconstruction.len() * 2,
+            ),
+            MemoryEntry::new(
+                "cluster receiver and probe lists",
+                (bake.cluster_receivers.len()
+                    + bake.receiver_offsets.len()
+                    + bake.cluster_probes.len()
+                    + bake.probe_offsets.len())
+                    * 4,
+            ),
+            MemoryEntry::new("probe sample tables", bake.sample_targets.len() * 4),
+            MemoryEntry::new("SH basis table", self.basis_table.len() * 4),
+            MemoryEntry::new(
+                "probe-visible texels",
+                bake.visible_receivers.len() * (4 + 12 + 12 + 12 + 12 + 12 + 4),
+            ),
+            MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
+            MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
+            MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
+            MemoryEntry::new("lightmap", self.lightmap.len() * 12),
+        ]
+    }
+}
