@@ -583,6 +583,9 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
                 &[],
                 &relight_technique::NoProgress,
             )?;
+            for (fact, value) in technique.bake_facts() {
+                say!("{:<15} {}", fact, value);
+            }
             for entry in technique.memory() {
                 say!(
                     "memory          {:<28} {:>12} bytes",

@@ -202,14 +202,20 @@ impl Srp {
     /// when bounces feed back.
     fn texel_radiance(&mut self) {
         let feedback = self.settings.bounces > 1;
-        for &texel in &self.needed {
-            let texel = texel as usize;
-            let mut irradiance = self.visible_direct[texel];
-            if feedback {
-                irradiance += self.receiver_values[self.bake.visible_receivers[texel] as usize];
+        let output = kernels::DisjointWriter::new(&mut self.visible_radiance);
+        let (direct, albedos) = (&self.visible_direct, &self.visible_albedos);
+        let (indirect, receivers) = (&self.receiver_values, &self.bake.visible_receivers);
+        self.needed.par_chunks(4096).for_each(|texels| {
+            for &texel in texels {
+                let texel = texel as usize;
+                let mut irradiance = direct[texel];
+                if feedback {
+                    irradiance += indirect[receivers[texel] as usize];
+                }
+                // SAFETY: `needed` lists each texel once.
+                unsafe { output.write(texel, albedos[texel] * irradiance * FRAC_1_PI) };
             }
-            self.visible_radiance[texel] = self.visible_albedos[texel] * irradiance * FRAC_1_PI;
-        }
+        });
     }
 
     /// Equation 5.1 over the shared sample directions for this frame's
@@ -306,15 +312,12 @@ impl Srp {
                     let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
                     for sorted in index..cluster_end {
                         let weights = &bake.reconstruction[sorted * rank..(sorted + 1) * rank];
-                        let irradiance = kernels::reconstruct(weights, basis, rank);
+                        let irradiance = kernels::reconstruct(weights, basis, rank).max(Rgb::ZERO);
                         // SAFETY: cluster_receivers is a permutation (checked
                         // when the bake is decoded), so every receiver is
                         // written by exactly one sorted index.
                         unsafe {
-                            output.write(
-                                bake.cluster_receivers[sorted] as usize,
-                                irradiance.max(Rgb::ZERO),
-                            )
+                            output.write(bake.cluster_receivers[sorted] as usize, irradiance)
                         };
                     }
                     index = cluster_end;
@@ -458,10 +461,29 @@ impl Technique for Srp {
             timings.time("cluster projection", || self.project_clusters());
             timings.time("reconstruction", || self.reconstruct());
         }
+        // Receivers into their texels in atlas order (mostly sequential
+        // writes), then the gutters copy them; both split across threads.
         timings.time("dilation", || {
-            self.context
-                .atlas
-                .scatter_into(&self.receiver_values, &mut self.lightmap);
+            let atlas = &self.context.atlas;
+            let width = atlas.width as usize;
+            let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
+            self.receiver_values
+                .par_chunks(8192)
+                .zip(atlas.receivers.texels.par_chunks(8192))
+                .for_each(|(values, texels)| {
+                    for (value, &[x, y]) in values.iter().zip(texels) {
+                        // SAFETY: every receiver owns a distinct texel.
+                        unsafe { lightmap.write(y as usize * width + x as usize, *value) };
+                    }
+                });
+            atlas.dilation.par_chunks(8192).for_each(|pairs| {
+                for &(target, source) in pairs {
+                    // SAFETY: gutter targets are distinct and never sources
+                    // (sources are covered texels), so no element is both
+                    // read and written, nor written twice.
+                    unsafe { lightmap.write(target as usize, lightmap.read(source as usize)) };
+                }
+            });
         });
         self.timings = timings;
         self.updates += 1;
@@ -509,6 +531,46 @@ impl Technique for Srp {
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
         Some(&self.receiver_values)
+    }
+
+    fn bake_facts(&self) -> Vec<(&'static str, String)> {
+        let bake = &self.bake;
+        let stats = &bake.stats;
+        vec![
+            (
+                "srp probes",
+                format!(
+                    "{} ({} added for coverage, {} inside geometry), order {}, {} samples each",
+                    bake.probes.len(),
+                    stats.added_for_coverage,
+                    stats.probes_inside_geometry,
+                    bake.bands - 1,
+                    bake.sample_directions.len()
+                ),
+            ),
+            (
+                "srp coverage",
+                format!(
+                    "radius {:.3} m; {} of {} receivers see fewer than {} probes; {:.2} probes per receiver",
+                    bake.radius,
+                    stats.receivers_short_of_probes,
+                    bake.receiver_count,
+                    stats.min_probes,
+                    stats.mean_nearby
+                ),
+            ),
+            (
+                "srp transport",
+                format!(
+                    "{:.1} % valid samples; {} clusters, {} vectors each, {:.2} % of the energy kept",
+                    stats.valid_sample_fraction * 100.0,
+                    bake.cluster_count(),
+                    bake.rank,
+                    stats.captured_energy * 100.0
+                ),
+            ),
+            ("srp bake time", format!("{:.1} s", stats.seconds)),
+        ]
     }
 
     fn timings(&self) -> &StageTimings {

@@ -126,6 +126,12 @@ pub trait Technique: Send + Sync {
 
     /// Run-time buffers and their sizes.
     fn memory(&self) -> Vec<MemoryEntry>;
+
+    /// What the bake found, as (short label, value) lines for `relight
+    /// info --bake` (probe counts, coverage, bake time...).
+    fn bake_facts(&self) -> Vec<(&'static str, String)> {
+        Vec::new()
+    }
 }
 
 /// A technique's factory: name, bake and creation. The CLI lists kinds in
