@@ -184,13 +184,7 @@ impl TechniqueKind for PrmKind {
         params.validate()?;
         let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "prm" })?;
         let bake = PrmBake::decode(bake)?;
-        if bake.receiver_count != context.atlas.receivers.len() {
-            return Err(TechniqueError::Other(format!(
-                "this PRM bake has {} receivers but the scene's lightmap has {}: bake again with the same lightmap resolution",
-                bake.receiver_count,
-                context.atlas.receivers.len()
-            )));
-        }
+        context.check_bake_receivers("prm", bake.receiver_count)?;
         let selection = if params.selection == "contribution" {
             Selection::Contribution
         } else {

@@ -3,8 +3,23 @@
 //! `key=value,key=value` parameter lists.
 
 use relight_core::Rgb;
-use relight_technique::{reference_receiver_irradiance, NoProgress, SceneContext};
+use relight_scene::atlas::TexelDensity;
+use relight_technique::{reference_receiver_irradiance, ContextSettings, NoProgress, SceneContext};
 use relight_trace::path::PathSettings;
+use std::sync::Arc;
+
+/// The context of a study: `scene_path` with a lightmap of `resolution`
+/// texels on its longer side (0 = automatic). Panics with the reason, as
+/// studies are run by hand.
+pub fn study_context(scene_path: &str, resolution: u32) -> Arc<SceneContext> {
+    let scene = relight_scene::load_scene(std::path::Path::new(scene_path))
+        .unwrap_or_else(|error| panic!("{scene_path}: {error}"));
+    let settings = ContextSettings {
+        lightmap: TexelDensity::from_resolution(Some(resolution).filter(|&r| r != 0)),
+        ..ContextSettings::default()
+    };
+    Arc::new(SceneContext::new(scene, settings).expect("the scene's lightmap builds"))
+}
 
 /// The reference indirect lightmap of `context` under its scene's lights
 /// with `samples` paths per receiver, and its own relative noise; cached in

@@ -9,12 +9,10 @@
 use glam::Vec3;
 use relight_core::{luminance, Rgb};
 use relight_render::metrics::error_norms;
-use relight_render::study::{cached_reference_lightmap, parse_pairs};
-use relight_scene::atlas::TexelDensity;
+use relight_render::study::{cached_reference_lightmap, parse_pairs, study_context};
 use relight_srp::{SrpBake, SrpKind, BAKE_PARAMETERS};
-use relight_technique::{ContextSettings, Frame, NoProgress, SceneContext, TechniqueKind};
+use relight_technique::{Frame, NoProgress, TechniqueKind};
 use std::collections::HashMap;
-use std::sync::Arc;
 use std::time::Instant;
 
 fn main() {
@@ -25,12 +23,7 @@ fn main() {
     };
     let resolution: u32 = resolution.parse().expect("resolution");
     let samples: u32 = samples.parse().expect("reference samples");
-    let scene = relight_scene::load_scene(std::path::Path::new(scene_path)).expect("scene loads");
-    let settings = ContextSettings {
-        lightmap: TexelDensity::from_resolution(Some(resolution).filter(|&r| r != 0)),
-        ..ContextSettings::default()
-    };
-    let context = Arc::new(SceneContext::new(scene, settings).expect("context"));
+    let context = study_context(scene_path, resolution);
     let (reference, noise) = cached_reference_lightmap(&context, samples);
     println!(
         "{scene_path}: {} receivers, reference {samples} paths, noise {:.2} %",

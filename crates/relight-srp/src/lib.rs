@@ -273,13 +273,7 @@ impl TechniqueKind for SrpKind {
         let params = SrpParams::from_scene(&context, params)?;
         let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "srp" })?;
         let bake = SrpBake::decode(bake)?;
-        if bake.receiver_count != context.atlas.receivers.len() {
-            return Err(TechniqueError::Other(format!(
-                "this SRP bake has {} receivers but the scene's lightmap has {}: bake again with the same lightmap resolution",
-                bake.receiver_count,
-                context.atlas.receivers.len()
-            )));
-        }
+        context.check_bake_receivers("srp", bake.receiver_count)?;
         Ok(Box::new(Srp::new(context, bake, params.runtime())))
     }
 }

@@ -70,6 +70,23 @@ impl SceneContext {
         crate::scene_fingerprint(&self.scene, &self.atlas)
     }
 
+    /// Fails unless a bake made for `bake_receivers` lightmap receivers fits
+    /// this context's lightmap.
+    pub fn check_bake_receivers(
+        &self,
+        technique: &str,
+        bake_receivers: usize,
+    ) -> Result<(), crate::TechniqueError> {
+        let receivers = self.atlas.receivers.len();
+        if bake_receivers == receivers {
+            return Ok(());
+        }
+        Err(crate::TechniqueError::Other(format!(
+            "this {} bake has {bake_receivers} receivers but the scene's lightmap has {receivers}: bake again with the same lightmap resolution",
+            technique.to_uppercase()
+        )))
+    }
+
     /// The shared direct-light service over this scene.
     pub fn direct(&self) -> DirectLight<'_> {
         DirectLight::new(&self.scene, &self.bvh, &self.emitters, self.settings.direct)
