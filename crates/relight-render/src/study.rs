@@ -93,3 +93,94 @@ pub fn parse_pairs(list: &str) -> Vec<(String, String)> {
         .map(|(key, value)| (key.trim().to_string(), value.trim().to_string()))
         .collect()
 }
+
+/// What a study reports of one parameter set beyond the shared line: the
+/// context, the bake bytes and the technique's receiver irradiance.
+pub type StudyDetail<'a> = &'a dyn Fn(&SceneContext, &[u8], &[Rgb], &[Rgb]);
+
+/// The command line of a parameter study, `SCENE.toml RESOLUTION
+/// REFERENCE_SAMPLES PARAMS...`: for each `key=value,...` set, bakes `kind`
+/// (once per distinct set of `bake_parameters`), updates it under the
+/// scene's lights and prints its lightmap relRMSE against the cached
+/// reference and against the first set, then whatever `detail` adds
+/// (given the context, the bake, the values and the reference).
+pub fn run_study(
+    kind: &dyn relight_technique::TechniqueKind,
+    bake_parameters: &[&str],
+    detail: StudyDetail,
+) {
+    use relight_technique::Frame;
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [scene_path, resolution, samples, sets @ ..] = args.as_slice() else {
+        eprintln!("usage: study SCENE.toml RESOLUTION REFERENCE_SAMPLES PARAMS...");
+        std::process::exit(2);
+    };
+    let resolution: u32 = resolution.parse().expect("RESOLUTION is a number");
+    let samples: u32 = samples.parse().expect("REFERENCE_SAMPLES is a number");
+    let context = study_context(scene_path, resolution);
+    let (reference, noise) = cached_reference_lightmap(&context, samples);
+    println!(
+        "{scene_path}: {} receivers, reference {samples} paths, noise {:.2} %",
+        reference.len(),
+        noise * 100.0
+    );
+    let lights = context.scene.lights.clone();
+    let mut first: Option<Vec<Rgb>> = None;
+    // (bake parameters, bake bytes, seconds it took), one per distinct set.
+    type Baked = (Vec<(String, String)>, Vec<u8>, f64);
+    let mut bakes: Vec<Baked> = Vec::new();
+    for set in sets {
+        let params = parse_pairs(set);
+        let bake_params: Vec<(String, String)> = params
+            .iter()
+            .filter(|(key, _)| bake_parameters.contains(&key.as_str()))
+            .cloned()
+            .collect();
+        let index = match bakes.iter().position(|(key, _, _)| *key == bake_params) {
+            Some(index) => index,
+            None if !kind.needs_bake() => {
+                bakes.push((bake_params, Vec::new(), 0.0));
+                bakes.len() - 1
+            }
+            None => {
+                let started = std::time::Instant::now();
+                let bake = kind
+                    .bake(&context, &bake_params, &NoProgress)
+                    .expect("bake");
+                bakes.push((bake_params, bake, started.elapsed().as_secs_f64()));
+                bakes.len() - 1
+            }
+        };
+        let (_, bake, bake_seconds) = &bakes[index];
+        let payload = kind.needs_bake().then_some(bake.as_slice());
+        let mut technique = kind
+            .create(context.clone(), payload, &params, &NoProgress)
+            .expect("create");
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index: 0,
+            })
+            .expect("update");
+        let values = technique
+            .receiver_irradiance()
+            .expect("the technique keeps a lightmap");
+        let norms = crate::metrics::error_norms(values, &reference);
+        // Against the first parameter set too: that isolates what a change
+        // costs from the error both share.
+        let against_first = first
+            .as_ref()
+            .map(|first| crate::metrics::error_norms(values, first).relative_rmse * 100.0)
+            .unwrap_or(0.0);
+        println!(
+            "{set:40} relRMSE {:6.2} %  MRE {:6.2} %  vs first {against_first:6.2} %  (bake {bake_seconds:.1} s, {:.1} MiB)",
+            norms.relative_rmse * 100.0,
+            norms.mean_relative_error * 100.0,
+            bake.len() as f64 / 1048576.0
+        );
+        detail(&context, bake, values, &reference);
+        if first.is_none() {
+            first = Some(values.to_vec());
+        }
+    }
+}
