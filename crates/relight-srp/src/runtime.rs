@@ -243,18 +243,18 @@ impl Srp {
                 .enumerate()
                 .for_each(|(probe, out)| project(probe, out));
         } else {
-            let results: Vec<(u32, Vec<f32>)> = refreshing
-                .par_iter()
-                .map(|&probe| {
-                    let mut out = vec![0.0f32; 3 * coefficients];
-                    project(probe as usize, &mut out);
-                    (probe, out)
-                })
-                .collect();
-            for (probe, values) in results {
+            let output = kernels::DisjointWriter::new(&mut self.probe_radiance);
+            refreshing.par_iter().for_each(|&probe| {
+                let mut values = [0.0f32; 3 * sh::MAX_BANDS * sh::MAX_BANDS];
+                let values = &mut values[..3 * coefficients];
+                project(probe as usize, values);
                 let start = probe as usize * 3 * coefficients;
-                self.probe_radiance[start..start + 3 * coefficients].copy_from_slice(&values);
-            }
+                for (offset, value) in values.iter().enumerate() {
+                    // SAFETY: each refreshed probe appears once in the list
+                    // and owns its own 3 x C values.
+                    unsafe { output.write(start + offset, *value) };
+                }
+            });
         }
     }
 
