@@ -12,10 +12,9 @@ use relight_core::sh;
 use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
 use relight_trace::Ray;
 use std::collections::HashMap;
-use std::time::Instant;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 1;
+const PAYLOAD_VERSION: u32 = 2;
 
 /// A probe sample that escapes the scene.
 pub const ESCAPED: u32 = u32::MAX;
@@ -38,7 +37,6 @@ pub struct BakeStats {
     /// Fraction of the transport matrices' squared norm the kept principal
     /// vectors capture.
     pub captured_energy: f32,
-    pub seconds: f32,
 }
 
 /// Everything the run time needs.
@@ -89,7 +87,6 @@ impl SrpBake {
         params: &SrpParams,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
-        let start = Instant::now();
         let receivers = &context.atlas.receivers;
         if receivers.is_empty() {
             return Err(TechniqueError::Other(
@@ -247,7 +244,6 @@ impl SrpBake {
             })
             .collect();
         bake.visible_receivers = hit;
-        bake.stats.seconds = start.elapsed().as_secs_f32();
         Ok(bake)
     }
 
@@ -295,7 +291,6 @@ impl SrpBake {
             stats.mean_nearby,
             stats.valid_sample_fraction,
             stats.captured_energy,
-            stats.seconds,
         ]);
         writer.finish()
     }
@@ -352,7 +347,6 @@ impl SrpBake {
                 mean_nearby: floats.first().copied().unwrap_or(0.0),
                 valid_sample_fraction: floats.get(1).copied().unwrap_or(0.0),
                 captured_energy: floats.get(2).copied().unwrap_or(0.0),
-                seconds: floats.get(3).copied().unwrap_or(0.0),
             },
         };
         bake.validate().map_err(|message| reader.corrupt(message))?;

@@ -93,7 +93,7 @@ mod runtime;
 pub mod transport;
 
 pub use bake::{cluster_transport, sample_directions, BakeStats, SrpBake, BACK_FACE, ESCAPED};
-pub use runtime::{phong_band_factor, RuntimeSettings, Srp};
+pub use runtime::{phong_band_factors, RuntimeSettings, Srp};
 
 use relight_technique::{
     parse_params, with_scene_section, Progress, SceneContext, Technique, TechniqueError,
@@ -251,15 +251,14 @@ impl TechniqueKind for SrpKind {
         let params = SrpParams::from_scene(context, params)?;
         let bake = SrpBake::build(context, &params, progress)?;
         tracing::info!(
-            "srp bake: {} probes ({} added for coverage), radius {:.3} m, {} receivers short of {} probes, {} clusters, {:.1} % of the transport's energy kept, {:.1} s",
+            "srp bake: {} probes ({} added for coverage), radius {:.3} m, {} receivers short of {} probes, {} clusters, {:.1} % of the transport's energy kept",
             bake.probes.len(),
             bake.stats.added_for_coverage,
             bake.radius,
             bake.stats.receivers_short_of_probes,
             bake.stats.min_probes,
             bake.cluster_count(),
-            bake.stats.captured_energy * 100.0,
-            bake.stats.seconds
+            bake.stats.captured_energy * 100.0
         );
         Ok(bake.encode())
     }

@@ -195,6 +195,25 @@ fn receiver_sees_probe(
     !context.bvh.occluded(&ray)
 }
 
+/// The probes within `radius` of a receiver and in front of its plane, as
+/// (probe, distance, whether the receiver sees it).
+fn probes_in_reach<'a>(
+    context: &'a SceneContext,
+    probes: &'a [Vec3],
+    radius: f32,
+    position: Vec3,
+    normal: Vec3,
+    epsilon: f32,
+) -> impl Iterator<Item = (u32, f32, bool)> + 'a {
+    probes.iter().enumerate().filter_map(move |(index, probe)| {
+        let distance = probe.distance(position);
+        (distance < radius && (*probe - position).dot(normal) > 0.0).then(|| {
+            let seen = receiver_sees_probe(context, position, normal, *probe, epsilon);
+            (index as u32, distance, seen)
+        })
+    })
+}
+
 /// Probes within `radius` of every receiver, closest first, at most
 /// `max_nearby` of them, those the receiver sees before those it does not
 /// (the transport's mutual-visibility rays decide per direction; this only
@@ -212,17 +231,10 @@ pub fn nearby_probes(
         .map(|index| {
             let position = receivers.positions[index];
             let normal = receivers.normals[index];
-            let mut candidates: Vec<(bool, f32, u32)> = probes
-                .iter()
-                .enumerate()
-                .filter_map(|(probe_index, probe)| {
-                    let distance = probe.distance(position);
-                    (distance < radius && (*probe - position).dot(normal) > 0.0).then(|| {
-                        let seen = receiver_sees_probe(context, position, normal, *probe, epsilon);
-                        (!seen, distance, probe_index as u32)
-                    })
-                })
-                .collect();
+            let mut candidates: Vec<(bool, f32, u32)> =
+                probes_in_reach(context, probes, radius, position, normal, epsilon)
+                    .map(|(probe, distance, seen)| (!seen, distance, probe))
+                    .collect();
             candidates.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)).then(a.2.cmp(&b.2)));
             candidates.truncate(max_nearby);
             let mut chosen: Vec<u32> = candidates.into_iter().map(|(_, _, probe)| probe).collect();
@@ -241,12 +253,8 @@ fn visible_counts(context: &SceneContext, probes: &[Vec3], radius: f32) -> Vec<u
         .map(|index| {
             let position = receivers.positions[index];
             let normal = receivers.normals[index];
-            probes
-                .iter()
-                .filter(|probe| {
-                    probe.distance(position) < radius
-                        && receiver_sees_probe(context, position, normal, **probe, epsilon)
-                })
+            probes_in_reach(context, probes, radius, position, normal, epsilon)
+                .filter(|&(_, _, seen)| seen)
                 .count()
         })
         .collect()

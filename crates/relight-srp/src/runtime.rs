@@ -326,107 +326,90 @@ impl Srp {
             });
     }
 
-    /// Probe weights for a point in space: equation 4.4 within the cut-off
-    /// radius, times visibility; the nearest visible probe when none is
-    /// within it.
-    fn probe_weights(&self, position: Vec3, normal: Vec3, out: &mut Vec<(usize, f32)>) {
-        out.clear();
+    /// The probes' radiance field at `position`, convolved per band with
+    /// `band_factors` and evaluated in `direction`: probes weighted by
+    /// equation 4.4 within the cut-off radius and by whether the point sees
+    /// them, or the nearest probe when none qualifies. One pass over the
+    /// probes, nothing allocated: renderers call this per pixel.
+    fn blend_probes(
+        &self,
+        position: Vec3,
+        normal: Vec3,
+        direction: Vec3,
+        bands: usize,
+        band_factors: &[f32; sh::MAX_BANDS],
+    ) -> Rgb {
+        let bands = bands.min(self.bake.bands);
+        let count = sh::coefficient_count(bands);
+        let mut filtered = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
+        sh::evaluate(direction, bands, &mut filtered[..count]);
+        for band in 0..bands {
+            for value in &mut filtered[band * band..(band + 1) * (band + 1)] {
+                *value *= band_factors[band];
+            }
+        }
+        let radiance_of = |probe: usize| {
+            let mut radiance = Rgb::ZERO;
+            for channel in 0..3 {
+                let start = (probe * 3 + channel) * self.coefficients;
+                radiance[channel] = self.probe_radiance[start..start + count]
+                    .iter()
+                    .zip(&filtered[..count])
+                    .map(|(value, basis)| value * basis)
+                    .sum();
+            }
+            radiance
+        };
         let epsilon = relight_trace::direct::ray_epsilon_for(&self.context.bvh);
         let origin = position + normal * epsilon;
-        let sees = |probe: Vec3| {
-            let ray = Ray {
-                origin,
-                direction: probe - origin,
-                t_max: 1.0,
-            };
-            !self.context.bvh.occluded(&ray)
-        };
         let radius = self.bake.radius;
+        let (mut sum, mut total) = (Rgb::ZERO, 0.0f32);
         let mut nearest: Option<(usize, f32)> = None;
         for (index, &probe) in self.bake.probes.iter().enumerate() {
             let distance = probe.distance(position);
             if distance < radius {
                 let weight = falloff_weight(distance / radius);
-                if weight > 0.0 && sees(probe) {
-                    out.push((index, weight));
+                let ray = Ray {
+                    origin,
+                    direction: probe - origin,
+                    t_max: 1.0,
+                };
+                if weight > 0.0 && !self.context.bvh.occluded(&ray) {
+                    sum += radiance_of(index) * weight;
+                    total += weight;
                 }
             }
             if nearest.is_none_or(|(_, best)| distance < best) {
                 nearest = Some((index, distance));
             }
         }
-        if out.is_empty() {
-            if let Some((index, _)) = nearest {
-                out.push((index, 1.0));
-            }
+        if total == 0.0 {
+            return nearest.map_or(Rgb::ZERO, |(index, _)| radiance_of(index).max(Rgb::ZERO));
         }
-    }
-
-    /// Sum over probes of weight x SH radiance filtered per band by
-    /// `band_factor`, evaluated in `direction`: the probes' radiance field
-    /// convolved with a zonal kernel.
-    fn filtered_probe_radiance(
-        &self,
-        weights: &[(usize, f32)],
-        direction: Vec3,
-        bands: usize,
-        band_factor: impl Fn(usize) -> f32,
-    ) -> Rgb {
-        let mut basis = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
-        let bands = bands.min(self.bake.bands);
-        let count = sh::coefficient_count(bands);
-        sh::evaluate(direction, bands, &mut basis[..count]);
-        let mut factors = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
-        for band in 0..bands {
-            let factor = band_factor(band);
-            for order in 0..2 * band + 1 {
-                factors[band * band + order] = factor;
-            }
-        }
-        let total: f32 = weights.iter().map(|(_, weight)| weight).sum();
-        let mut result = Rgb::ZERO;
-        for &(probe, weight) in weights {
-            for channel in 0..3 {
-                let start = (probe * 3 + channel) * self.coefficients;
-                let values = &self.probe_radiance[start..start + count];
-                let sum: f32 = values
-                    .iter()
-                    .zip(&basis[..count])
-                    .zip(&factors[..count])
-                    .map(|((value, basis), factor)| value * basis * factor)
-                    .sum();
-                result[channel] += weight * sum;
-            }
-        }
-        (result / total.max(f32::MIN_POSITIVE)).max(Rgb::ZERO)
+        (sum / total).max(Rgb::ZERO)
     }
 }
 
-/// Zonal factor of band `band` for the normalised Phong lobe
-/// (k + 1) / (2 pi) cos^k around the reflection direction:
-/// sqrt(4 pi / (2l + 1)) times its zonal coefficient, which is
-/// (k + 1) times the integral of mu^k P_l(mu) over [0, 1] (midpoint rule).
-pub fn phong_band_factor(exponent: f32, band: usize) -> f32 {
-    const STEPS: usize = 256;
-    let mut sum = 0.0f64;
-    for step in 0..STEPS {
-        let mu = (step as f64 + 0.5) / STEPS as f64;
-        // Legendre P_l(mu) by the three-term recurrence.
-        let (mut previous, mut current) = (1.0f64, mu);
-        let legendre = if band == 0 {
-            1.0
-        } else {
-            for l in 1..band {
-                let next =
-                    ((2 * l + 1) as f64 * mu * current - l as f64 * previous) / (l + 1) as f64;
-                previous = current;
-                current = next;
-            }
-            current
-        };
-        sum += mu.powf(exponent as f64) * legendre;
+/// Zonal factors, per band, of the normalised Phong lobe
+/// (k + 1) / (2 pi) cos^k around the reflection direction: sqrt(4 pi /
+/// (2l + 1)) times its zonal coefficient, which is (k + 1) I_l with
+/// I_l = integral over [0, 1] of mu^k P_l(mu), from I_0 = 1 / (k + 1),
+/// I_1 = 1 / (k + 2) and I_l = (k - l + 2) / (k + l + 1) I_(l-2).
+pub fn phong_band_factors(exponent: f32) -> [f32; sh::MAX_BANDS] {
+    let k = exponent as f64;
+    let mut integrals = [0.0f64; sh::MAX_BANDS];
+    integrals[0] = 1.0 / (k + 1.0);
+    integrals[1] = 1.0 / (k + 2.0);
+    for band in 2..sh::MAX_BANDS {
+        let l = band as f64;
+        integrals[band] = (k - l + 2.0) / (k + l + 1.0) * integrals[band - 2];
     }
-    ((exponent as f64 + 1.0) * sum / STEPS as f64) as f32
+    integrals.map(|integral| ((k + 1.0) * integral) as f32)
+}
+
+/// The cosine lobe's factors (Ramamoorthi and Hanrahan) for irradiance.
+fn cosine_band_factors() -> [f32; sh::MAX_BANDS] {
+    std::array::from_fn(sh::cosine_lobe_factor)
 }
 
 impl Technique for Srp {
@@ -501,9 +484,7 @@ impl Technique for Srp {
     /// correction and no mutual visibility beyond the point seeing the
     /// probe, so an approximation for dynamic objects.
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
-        let mut weights = Vec::new();
-        self.probe_weights(position, normal, &mut weights);
-        self.filtered_probe_radiance(&weights, normal, 3, sh::cosine_lobe_factor)
+        self.blend_probes(position, normal, normal, 3, &cosine_band_factors())
     }
 
     /// Glossy reflection of the probes' radiance: the interpolated probe SH
@@ -520,12 +501,14 @@ impl Technique for Srp {
         }
         let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
             .normalize_or_zero();
-        let mut weights = Vec::new();
-        self.probe_weights(point.position, point.normal, &mut weights);
         Some(
-            self.filtered_probe_radiance(&weights, reflected, 5, |band| {
-                phong_band_factor(exponent, band)
-            }) * self.settings.specular,
+            self.blend_probes(
+                point.position,
+                point.normal,
+                reflected,
+                5,
+                &phong_band_factors(exponent),
+            ) * self.settings.specular,
         )
     }
 
@@ -569,7 +552,6 @@ impl Technique for Srp {
                     stats.captured_energy * 100.0
                 ),
             ),
-            ("srp bake time", format!("{:.1} s", stats.seconds)),
         ]
     }
 
@@ -607,5 +589,47 @@ impl Technique for Srp {
             MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
         ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The recurrence against midpoint quadrature of (k + 1) times the
+    /// integral of mu^k P_l(mu) over [0, 1]; band 0 is 1 (the lobe is
+    /// normalised).
+    #[test]
+    fn phong_band_factors_match_quadrature() {
+        for exponent in [1.5f32, 2.0, 7.3, 40.0, 200.0] {
+            let factors = phong_band_factors(exponent);
+            assert!((factors[0] - 1.0).abs() < 1e-6);
+            for (band, factor) in factors.iter().enumerate() {
+                const STEPS: usize = 20_000;
+                let mut sum = 0.0f64;
+                for step in 0..STEPS {
+                    let mu = (step as f64 + 0.5) / STEPS as f64;
+                    let (mut previous, mut current) = (1.0f64, mu);
+                    let legendre = if band == 0 {
+                        1.0
+                    } else {
+                        for l in 1..band {
+                            let next = ((2 * l + 1) as f64 * mu * current - l as f64 * previous)
+                                / (l + 1) as f64;
+                            previous = current;
+                            current = next;
+                        }
+                        current
+                    };
+                    sum += mu.powf(exponent as f64) * legendre;
+                }
+                let expected = (exponent as f64 + 1.0) * sum / STEPS as f64;
+                // Midpoint error of a smooth integrand at 20k steps.
+                assert!(
+                    (*factor as f64 - expected).abs() < 1e-4,
+                    "k {exponent} band {band}"
+                );
+            }
+        }
     }
 }
