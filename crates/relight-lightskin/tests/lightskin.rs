@@ -11,13 +11,11 @@ use relight_lightskin::occlusion::{occluded_fraction, occluded_fraction_portable
 use relight_lightskin::points::interpolation_weights;
 use relight_lightskin::vals::{Val, Vals};
 use relight_lightskin::{phong_diffuse, LightSkin, LightSkinKind, LightSkinParams};
-use relight_render::metrics::{error_norms, relative_noise};
-use relight_render::render::{render_reference, render_with_technique};
+use relight_render::study::indirect_errors;
 use relight_scene::atlas::TexelDensity;
 use relight_scene::{Light, Scene};
 use relight_technique::{
-    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, Technique,
-    TechniqueKind,
+    ContextSettings, Frame, NoProgress, SceneContext, Technique, TechniqueKind,
 };
 use relight_trace::path::PathSettings;
 use std::path::{Path, PathBuf};
@@ -632,7 +630,6 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
         max_bounces: 1,
         ..PathSettings::default()
     };
-    let reference = reference_receiver_irradiance(&context, &lights, settings, 1024, &NoProgress);
     let pairs: Vec<(String, String)> = params
         .iter()
         .map(|(k, v)| (k.to_string(), v.to_string()))
@@ -646,20 +643,12 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
             index: 0,
         })
         .unwrap();
-    let lightmap =
-        error_norms(technique.receiver_irradiance().unwrap(), &reference.mean).relative_rmse;
-    let reference_image = render_reference(&context, &lights, settings, 4096, &NoProgress);
-    let image = render_with_technique(&context, &lights, technique.as_ref(), 4, 1, &NoProgress);
-    let image_error =
-        error_norms(&image.indirect.pixels, &reference_image.indirect.pixels).relative_rmse;
+    let errors = indirect_errors(&context, &lights, technique.as_ref(), settings, 1024, 4096);
     (
-        lightmap,
-        relative_noise(&reference.mean, &reference.standard_error),
-        image_error,
-        relative_noise(
-            &reference_image.indirect.pixels,
-            &reference_image.indirect_standard_error.pixels,
-        ),
+        errors.lightmap,
+        errors.lightmap_noise,
+        errors.image,
+        errors.image_noise,
     )
 }
 

@@ -184,3 +184,47 @@ pub fn run_study(
         }
     }
 }
+
+/// A technique's indirect light against the path tracer on one scene.
+#[derive(Clone, Copy, Debug)]
+pub struct IndirectErrors {
+    /// relRMSE of the receivers' indirect irradiance.
+    pub lightmap: f64,
+    /// The reference lightmap's own relative noise.
+    pub lightmap_noise: f64,
+    /// relRMSE of the indirect-only image (4 primary rays per pixel).
+    pub image: f64,
+    /// The reference image's own relative noise.
+    pub image_noise: f64,
+}
+
+/// `technique`, already updated under `lights`, against path tracing with
+/// `settings`: `reference_samples` paths per receiver and `reference_spp`
+/// per pixel of the context's camera.
+pub fn indirect_errors(
+    context: &SceneContext,
+    lights: &[relight_scene::Light],
+    technique: &dyn relight_technique::Technique,
+    settings: PathSettings,
+    reference_samples: u32,
+    reference_spp: u32,
+) -> IndirectErrors {
+    use crate::metrics::{error_norms, relative_noise};
+    use crate::render::{render_reference, render_with_technique};
+    let reference =
+        reference_receiver_irradiance(context, lights, settings, reference_samples, &NoProgress);
+    let receivers = technique
+        .receiver_irradiance()
+        .expect("the technique keeps a lightmap");
+    let reference_image = render_reference(context, lights, settings, reference_spp, &NoProgress);
+    let image = render_with_technique(context, lights, technique, 4, 1, &NoProgress);
+    IndirectErrors {
+        lightmap: error_norms(receivers, &reference.mean).relative_rmse,
+        lightmap_noise: relative_noise(&reference.mean, &reference.standard_error),
+        image: error_norms(&image.indirect.pixels, &reference_image.indirect.pixels).relative_rmse,
+        image_noise: relative_noise(
+            &reference_image.indirect.pixels,
+            &reference_image.indirect_standard_error.pixels,
+        ),
+    }
+}

@@ -3,6 +3,7 @@
 use glam::Vec3;
 use relight_core::Rgb;
 use relight_render::metrics::error_norms;
+use relight_render::study::indirect_errors;
 use relight_scene::atlas::TexelDensity;
 use relight_srp::probes::{count_short_receivers, is_inside_geometry};
 use relight_srp::transport::{aabb_clusters, compress, TransportScratch, TransportSettings};
@@ -280,8 +281,6 @@ fn error_falls_with_order_and_probe_count() {
 /// All-bounce lightmap and indirect-image relRMSE against the path tracer,
 /// and the references' own noise.
 fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
-    use relight_render::metrics::relative_noise;
-    use relight_render::render::{render_reference, render_with_technique};
     let mut scene = relight_scene::load_scene(&scene_path(scene_name)).unwrap();
     // A small image keeps the reference's noise low at a test's cost.
     let [width, height] = scene.camera.resolution;
@@ -297,23 +296,20 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
         .unwrap(),
     );
     let lights = context.scene.lights.clone();
-    let settings = PathSettings::default();
-    let reference = reference_receiver_irradiance(&context, &lights, settings, 2048, &NoProgress);
     let technique = srp(&context, params);
-    let lightmap =
-        error_norms(technique.receiver_irradiance().unwrap(), &reference.mean).relative_rmse;
-    let reference_image = render_reference(&context, &lights, settings, 4096, &NoProgress);
-    let image = render_with_technique(&context, &lights, technique.as_ref(), 4, 1, &NoProgress);
-    let image_error =
-        error_norms(&image.indirect.pixels, &reference_image.indirect.pixels).relative_rmse;
+    let errors = indirect_errors(
+        &context,
+        &lights,
+        technique.as_ref(),
+        PathSettings::default(),
+        2048,
+        4096,
+    );
     (
-        lightmap,
-        relative_noise(&reference.mean, &reference.standard_error),
-        image_error,
-        relative_noise(
-            &reference_image.indirect.pixels,
-            &reference_image.indirect_standard_error.pixels,
-        ),
+        errors.lightmap,
+        errors.lightmap_noise,
+        errors.image,
+        errors.image_noise,
     )
 }
 
