@@ -53,9 +53,10 @@
 //! Known limits and choices:
 //! - The thesis places probes by hand. Probes hugging the surfaces see them
 //!   at grazing angles where band-limited radiance rings, so placement
-//!   spreads them through the volume: Cornell box lightmap error 12.2 % for
-//!   a shell of probes at a fixed height, 10.3 % for candidates at varied
-//!   heights, 8.8 % once relaxed (a hand-made 3 x 3 x 3 grid: 7.7 %).
+//!   spreads them through the volume (Cornell box lightmap error, measured
+//!   while building it: 12.2 % for a shell of probes at a fixed height,
+//!   10.3 % for candidates at varied heights, 8.8 % once relaxed, 7.7 % for
+//!   a hand-made 3 x 3 x 3 grid; 7.9 % with the final placement).
 //! - An escaping primary ray is a valid sample with no indirect light (the
 //!   environment's light is direct light here), not a question for the
 //!   probes: at openings, probes deeper inside see walls in that direction,
@@ -63,7 +64,8 @@
 //! - Transport rays start at the texel centre by default: relight's
 //!   receivers, references and bilinear lookups treat a texel's value as the
 //!   value at its centre, and averaging over the texel instead (the thesis,
-//!   `texel_jitter = true`) measured 15.7 % against 11.3 % on the Cornell box.
+//!   `texel_jitter = true`) measured 15.7 % against 11.3 % on the Cornell box
+//!   while building (before the placement above).
 //! - The thesis counts light arriving from the environment at the probes as
 //!   indirect. relight's direct-light service already gives receivers the
 //!   environment's light, so escaping probe samples carry no radiance here,
