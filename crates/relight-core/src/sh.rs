@@ -130,6 +130,49 @@ pub fn cosine_lobe_factor(band: usize) -> f32 {
     }
 }
 
+/// Zonal factors, per band, of the normalised Phong lobe
+/// (k + 1) / (2 pi) cos^k around the reflection direction: sqrt(4 pi /
+/// (2l + 1)) times its zonal coefficient, which is (k + 1) I_l with
+/// I_l = integral over [0, 1] of mu^k P_l(mu), from I_0 = 1 / (k + 1),
+/// I_1 = 1 / (k + 2) and I_l = (k - l + 2) / (k + l + 1) I_(l-2).
+pub fn phong_band_factors(exponent: f32) -> [f32; MAX_BANDS] {
+    let k = exponent as f64;
+    let mut integrals = [0.0f64; MAX_BANDS];
+    integrals[0] = 1.0 / (k + 1.0);
+    integrals[1] = 1.0 / (k + 2.0);
+    for band in 2..MAX_BANDS {
+        let l = band as f64;
+        integrals[band] = (k - l + 2.0) / (k + l + 1.0) * integrals[band - 2];
+    }
+    integrals.map(|integral| ((k + 1.0) * integral) as f32)
+}
+
+/// Band factors of a cone of half-angle alpha (Appendix C of the PIC
+/// paper, by Funk-Hecke): the SH coefficients of the cone's indicator
+/// function around the unit `d` are `factors[l] * Y_lm(d)`, where
+/// `factors[l] = 2 pi * integral over [cos alpha, 1] of P_l(x) dx`, that is
+/// 2 pi (1 - cos alpha) for l = 0 and 2 pi (P_(l-1) - P_(l+1)) / (2l + 1)
+/// at cos alpha otherwise. Band 0 is the cone's solid angle times Y_00.
+pub fn cone_band_factors(cos_alpha: f32) -> [f32; MAX_BANDS] {
+    let x = cos_alpha.clamp(-1.0, 1.0);
+    // Legendre polynomials P_0..P_MAX_BANDS at x.
+    let mut legendre = [0.0f32; MAX_BANDS + 1];
+    legendre[0] = 1.0;
+    legendre[1] = x;
+    for l in 1..MAX_BANDS {
+        legendre[l + 1] =
+            ((2 * l + 1) as f32 * x * legendre[l] - l as f32 * legendre[l - 1]) / (l + 1) as f32;
+    }
+    let tau = 2.0 * std::f32::consts::PI;
+    std::array::from_fn(|band| {
+        if band == 0 {
+            tau * (1.0 - x)
+        } else {
+            tau * (legendre[band - 1] - legendre[band + 1]) / (2 * band + 1) as f32
+        }
+    })
+}
+
 /// Projects a function on the sphere into SH by deterministic quadrature over
 /// a latitude-longitude grid (reference for tests and bakes that need exact
 /// projections of analytic functions).
@@ -250,6 +293,75 @@ mod tests {
                 (numerical - analytic).abs() < 5e-4,
                 "band {band}: numerical {numerical} analytic {analytic}"
             );
+        }
+    }
+
+    /// The recurrence against midpoint quadrature of (k + 1) times the
+    /// integral of mu^k P_l(mu) over [0, 1]; band 0 is 1 (the lobe is
+    /// normalised).
+    #[test]
+    fn phong_band_factors_match_quadrature() {
+        for exponent in [1.5f32, 2.0, 7.3, 40.0, 200.0] {
+            let factors = phong_band_factors(exponent);
+            assert!((factors[0] - 1.0).abs() < 1e-6);
+            for (band, factor) in factors.iter().enumerate() {
+                const STEPS: usize = 20_000;
+                let mut sum = 0.0f64;
+                for step in 0..STEPS {
+                    let mu = (step as f64 + 0.5) / STEPS as f64;
+                    let (mut previous, mut current) = (1.0f64, mu);
+                    let legendre = if band == 0 {
+                        1.0
+                    } else {
+                        for l in 1..band {
+                            let next = ((2 * l + 1) as f64 * mu * current - l as f64 * previous)
+                                / (l + 1) as f64;
+                            previous = current;
+                            current = next;
+                        }
+                        current
+                    };
+                    sum += mu.powf(exponent as f64) * legendre;
+                }
+                let expected = (exponent as f64 + 1.0) * sum / STEPS as f64;
+                // Midpoint error of a smooth integrand at 20k steps.
+                assert!(
+                    (*factor as f64 - expected).abs() < 1e-4,
+                    "k {exponent} band {band}"
+                );
+            }
+        }
+    }
+
+    /// A cone's band factors against quadrature of its indicator function
+    /// projected into SH around an arbitrary axis, for 1 to 8 bands.
+    #[test]
+    fn cone_band_factors_match_projected_indicator() {
+        let axis = Vec3::new(0.3, -0.5, 0.81).normalize();
+        for cos_alpha in [0.99f32, 0.9, 0.5, 0.0, -0.4] {
+            let factors = cone_band_factors(cos_alpha);
+            let projected = project_by_quadrature(MAX_BANDS, 1024, |direction| {
+                if direction.dot(axis) >= cos_alpha {
+                    1.0
+                } else {
+                    0.0
+                }
+            });
+            let mut basis = [0.0f32; 64];
+            evaluate(axis, MAX_BANDS, &mut basis);
+            for band in 0..MAX_BANDS {
+                for order in -(band as isize)..=band as isize {
+                    let i = index(band, order);
+                    let expected = projected[i];
+                    let got = factors[band] * basis[i];
+                    // A 1024 x 2048 grid resolves the cone's edge to about
+                    // 3e-3 sr of its area.
+                    assert!(
+                        (got - expected).abs() < 6e-3,
+                        "cos {cos_alpha} band {band} order {order}: {got} vs {expected}"
+                    );
+                }
+            }
         }
     }
 }

@@ -95,7 +95,7 @@ mod runtime;
 pub mod transport;
 
 pub use bake::{cluster_transport, sample_directions, BakeStats, SrpBake, BACK_FACE, ESCAPED};
-pub use runtime::{phong_band_factors, RuntimeSettings, Srp};
+pub use runtime::{RuntimeSettings, Srp};
 
 use relight_technique::{
     parse_params, with_scene_section, Progress, SceneContext, Technique, TechniqueError,

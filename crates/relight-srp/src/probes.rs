@@ -20,48 +20,9 @@ pub struct Placement {
     pub receivers_short_of_probes: usize,
 }
 
-/// Directions that test whether a point is enclosed: the axes and the cube
-/// diagonals.
-fn enclosure_directions() -> [Vec3; 14] {
-    let mut directions = [Vec3::ZERO; 14];
-    let axes = [Vec3::X, Vec3::Y, Vec3::Z];
-    for (index, axis) in axes.iter().enumerate() {
-        directions[2 * index] = *axis;
-        directions[2 * index + 1] = -*axis;
-    }
-    let mut slot = 6;
-    for x in [-1.0f32, 1.0] {
-        for y in [-1.0f32, 1.0] {
-            for z in [-1.0f32, 1.0] {
-                directions[slot] = Vec3::new(x, y, z).normalize();
-                slot += 1;
-            }
-        }
-    }
-    directions
-}
-
-/// True when `point` is inside geometry: more than a quarter of the test
-/// rays that hit something hit a back face (a point in a room sees front
-/// faces all round; a point inside a box or wall sees its back faces).
+/// Re-exported for the probe placement tests.
 pub fn is_inside_geometry(context: &SceneContext, point: Vec3) -> bool {
-    let mut hits = 0;
-    let mut back_hits = 0;
-    for direction in enclosure_directions() {
-        let ray = Ray {
-            origin: point,
-            direction,
-            t_max: f32::INFINITY,
-        };
-        if let Some(hit) = context.bvh.intersect(&ray) {
-            hits += 1;
-            let normal = context.scene.mesh.geometric_normal(hit.triangle as usize);
-            if normal.dot(direction) > 0.0 {
-                back_hits += 1;
-            }
-        }
-    }
-    back_hits * 4 > hits
+    context.is_inside_geometry(point)
 }
 
 /// A candidate probe position above receiver `index`: `height` along its

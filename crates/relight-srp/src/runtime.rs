@@ -390,23 +390,6 @@ impl Srp {
     }
 }
 
-/// Zonal factors, per band, of the normalised Phong lobe
-/// (k + 1) / (2 pi) cos^k around the reflection direction: sqrt(4 pi /
-/// (2l + 1)) times its zonal coefficient, which is (k + 1) I_l with
-/// I_l = integral over [0, 1] of mu^k P_l(mu), from I_0 = 1 / (k + 1),
-/// I_1 = 1 / (k + 2) and I_l = (k - l + 2) / (k + l + 1) I_(l-2).
-pub fn phong_band_factors(exponent: f32) -> [f32; sh::MAX_BANDS] {
-    let k = exponent as f64;
-    let mut integrals = [0.0f64; sh::MAX_BANDS];
-    integrals[0] = 1.0 / (k + 1.0);
-    integrals[1] = 1.0 / (k + 2.0);
-    for band in 2..sh::MAX_BANDS {
-        let l = band as f64;
-        integrals[band] = (k - l + 2.0) / (k + l + 1.0) * integrals[band - 2];
-    }
-    integrals.map(|integral| ((k + 1.0) * integral) as f32)
-}
-
 /// The cosine lobe's factors (Ramamoorthi and Hanrahan) for irradiance.
 fn cosine_band_factors() -> [f32; sh::MAX_BANDS] {
     std::array::from_fn(sh::cosine_lobe_factor)
@@ -507,7 +490,7 @@ impl Technique for Srp {
                 point.normal,
                 reflected,
                 5,
-                &phong_band_factors(exponent),
+                &sh::phong_band_factors(exponent),
             ) * self.settings.specular,
         )
     }
@@ -589,47 +572,5 @@ impl Technique for Srp {
             MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
         ]
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The recurrence against midpoint quadrature of (k + 1) times the
-    /// integral of mu^k P_l(mu) over [0, 1]; band 0 is 1 (the lobe is
-    /// normalised).
-    #[test]
-    fn phong_band_factors_match_quadrature() {
-        for exponent in [1.5f32, 2.0, 7.3, 40.0, 200.0] {
-            let factors = phong_band_factors(exponent);
-            assert!((factors[0] - 1.0).abs() < 1e-6);
-            for (band, factor) in factors.iter().enumerate() {
-                const STEPS: usize = 20_000;
-                let mut sum = 0.0f64;
-                for step in 0..STEPS {
-                    let mu = (step as f64 + 0.5) / STEPS as f64;
-                    let (mut previous, mut current) = (1.0f64, mu);
-                    let legendre = if band == 0 {
-                        1.0
-                    } else {
-                        for l in 1..band {
-                            let next = ((2 * l + 1) as f64 * mu * current - l as f64 * previous)
-                                / (l + 1) as f64;
-                            previous = current;
-                            current = next;
-                        }
-                        current
-                    };
-                    sum += mu.powf(exponent as f64) * legendre;
-                }
-                let expected = (exponent as f64 + 1.0) * sum / STEPS as f64;
-                // Midpoint error of a smooth integrand at 20k steps.
-                assert!(
-                    (*factor as f64 - expected).abs() < 1e-4,
-                    "k {exponent} band {band}"
-                );
-            }
-        }
     }
 }
