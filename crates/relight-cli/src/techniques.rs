@@ -10,6 +10,7 @@ pub fn kinds() -> &'static [&'static dyn TechniqueKind] {
         &relight_prm::PrmKind,
         &relight_lightskin::LightSkinKind,
         &relight_srp::SrpKind,
+        &relight_pic::PicKind,
     ]
 }
 

@@ -121,7 +121,10 @@ mod encoding_tests {
             let colour = Rgb::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0;
             let back = ycocg_to_rgb(rgb_to_ycocg(colour));
             // Two adds and a halving per channel: a few ulps of 10.
-            assert!((back - colour).abs().max_element() < 1e-5, "{colour} {back}");
+            assert!(
+                (back - colour).abs().max_element() < 1e-5,
+                "{colour} {back}"
+            );
         }
         // Grey has no chroma.
         let grey = rgb_to_ycocg(Rgb::splat(0.7));

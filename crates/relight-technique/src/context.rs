@@ -1,10 +1,10 @@
 //! Everything built once per scene and shared by all techniques.
 
+use glam::Vec3;
 use relight_scene::atlas::{Atlas, TexelDensity};
 use relight_scene::{Scene, SceneError};
 use relight_trace::direct::{DirectLight, DirectSettings, Emitters};
 use relight_trace::{Bvh, Ray};
-use glam::Vec3;
 use std::time::{Duration, Instant};
 
 /// Settings that shape the shared scene data.
@@ -137,4 +137,3 @@ fn enclosure_directions() -> [Vec3; 14] {
     }
     directions
 }
-

@@ -1,0 +1,432 @@
+//! The PIC bake: surfels, hierarchy, caches and links, and their encoding.
+
+use crate::caches::{cache_atlas, place_caches, CachePlacement, GridLayout};
+use crate::hierarchy::{self, ClusterMetric, Hierarchy};
+use crate::links::{LinkForm, LinkSettings, Senders};
+use crate::surfels::{place_surfels, Surfels};
+use crate::PicParams;
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use relight_core::colour::octahedral_encode;
+use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
+
+const PAYLOAD_VERSION: u32 = 1;
+
+/// Links are padded to a multiple of this per cache (the kernel's lanes).
+pub const LINK_ALIGNMENT: usize = crate::kernels::LANES;
+
+/// Everything precomputed. Links are struct of arrays, `links_per_cache`
+/// per cache, caches in placement order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PicBake {
+    pub surfels: Surfels,
+    pub hierarchy: Hierarchy,
+    /// Metres per texel of the cache atlas; 0 = the scene's own atlas.
+    pub cache_atlas_metres: f32,
+    pub caches: CachePlacement,
+    pub links_per_cache: usize,
+    /// 0 for runtime projection, else the bands of the projected links.
+    pub projected_bands: usize,
+    pub link_nodes: Vec<u32>,
+    /// f16 of factor x `factor_scale` (runtime projection).
+    pub link_factors: Vec<u16>,
+    /// f16 of 1 - cos(alpha).
+    pub link_cones: Vec<u16>,
+    pub link_directions: Vec<[u16; 2]>,
+    /// f16 of coefficient x `factor_scale`, `projected_bands^2` per link.
+    pub link_coefficients: Vec<u16>,
+    pub factor_scale: f32,
+    pub hierarchy_builder: u32,
+    /// Surfels dropped because geometry encloses them.
+    pub enclosed_surfels: u32,
+}
+
+impl PicBake {
+    pub fn build(
+        context: &SceneContext,
+        params: &PicParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let mut surfels = place_surfels(&context.scene, params.surfels as usize, params.relaxation);
+        // Surfels enclosed by geometry (floor under a box, faces pressed
+        // together) neither see nor are seen: in a cluster they would only
+        // dilute its radiosity, so they go.
+        let lift = 4.0 * relight_trace::direct::ray_epsilon_for(&context.bvh);
+        let keep: Vec<bool> = (0..surfels.len())
+            .into_par_iter()
+            .map(|i| !context.is_inside_geometry(surfels.positions[i] + surfels.normals[i] * lift))
+            .collect();
+        let enclosed = keep.iter().filter(|k| !**k).count();
+        surfels.retain(&keep);
+        if surfels.is_empty() {
+            return Err(TechniqueError::Other(
+                "the scene has no surface area for surfels: PIC needs triangles".into(),
+            ));
+        }
+        let merges = if params.hierarchy == "kd" {
+            hierarchy::build_kd_tree(&surfels.positions)
+        } else {
+            hierarchy::build_agglomerative(
+                &surfels.positions,
+                &surfels.normals,
+                &context.bvh,
+                ClusterMetric {
+                    normal: params.normal_weight,
+                    balance: params.balance_weight,
+                    visibility: params.visibility_weight,
+                },
+                progress,
+            )
+        };
+        let (hierarchy, order) = hierarchy::finalise(surfels.len(), &merges);
+        surfels.permute(&order);
+        let (own_atlas, cache_atlas_metres) =
+            cache_atlas(context, params.lightmap_caches as usize)?;
+        let atlas = own_atlas.as_ref().unwrap_or(&context.atlas);
+        let grid_dims = (params.grid.iter().all(|&d| d > 0)).then_some(params.grid);
+        let caches = place_caches(context, atlas, params.grid_cells as usize, grid_dims);
+        let form = if params.projected {
+            LinkForm::Projected {
+                bands: params.bands as usize,
+            }
+        } else {
+            LinkForm::Runtime
+        };
+        let settings = LinkSettings {
+            links: params.links as usize,
+            node_samples: params.node_samples,
+            link_samples: params.link_samples,
+            leak_refinement: params.leak_refinement,
+            form,
+            seed: params.seed,
+        };
+        let senders = Senders {
+            surfels: &surfels,
+            hierarchy: &hierarchy,
+            bvh: &context.bvh,
+            epsilon: 4.0 * relight_trace::direct::ray_epsilon_for(&context.bvh),
+        };
+        let links_per_cache = (params.links as usize).div_ceil(LINK_ALIGNMENT) * LINK_ALIGNMENT;
+        let cache_count = caches.positions.len();
+        let coefficient_count = match form {
+            LinkForm::Projected { bands } => bands * bands,
+            LinkForm::Runtime => 0,
+        };
+        progress.start("linking caches", cache_count as u64);
+        // Per cache: nodes, (factor, 1 - cos, direction) and coefficients, in f32.
+        type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, Vec<f32>);
+        let per_cache: Vec<CacheLinks> = (0..cache_count)
+            .into_par_iter()
+            .map(|cache| {
+                let position = caches.positions[cache];
+                let normal = caches.normals[cache];
+                let nodes = senders.cut(cache as u64, position, normal, &settings);
+                let mut runtime = Vec::new();
+                let mut coefficients = vec![0.0f32; nodes.len() * coefficient_count];
+                for (slot, &node) in nodes.iter().enumerate() {
+                    match form {
+                        LinkForm::Runtime => {
+                            let link = senders.runtime_link(
+                                cache as u64,
+                                position,
+                                normal,
+                                node,
+                                &settings,
+                            );
+                            runtime.push((link.factor, link.one_minus_cos, link.direction));
+                        }
+                        LinkForm::Projected { bands } => senders.projected_link(
+                            cache as u64,
+                            position,
+                            normal,
+                            node,
+                            bands,
+                            &settings,
+                            &mut coefficients
+                                [slot * coefficient_count..(slot + 1) * coefficient_count],
+                        ),
+                    }
+                }
+                progress.advance(1);
+                (nodes, runtime, coefficients)
+            })
+            .collect();
+        progress.finish();
+        // One power-of-two scale keeps every factor a normal f16.
+        let largest = per_cache
+            .iter()
+            .flat_map(|(_, runtime, coefficients)| {
+                runtime
+                    .iter()
+                    .map(|(factor, _, _)| factor.abs())
+                    .chain(coefficients.iter().map(|c| c.abs()))
+            })
+            .fold(0.0f32, f32::max);
+        let factor_scale = if largest > 0.0 {
+            2f32.powi((16384.0 / largest).log2().floor() as i32)
+        } else {
+            1.0
+        };
+        let total = cache_count * links_per_cache;
+        let mut bake = PicBake {
+            surfels,
+            hierarchy,
+            cache_atlas_metres,
+            caches,
+            links_per_cache,
+            projected_bands: coefficient_count.isqrt(),
+            link_nodes: vec![0; total],
+            link_factors: Vec::new(),
+            link_cones: Vec::new(),
+            link_directions: Vec::new(),
+            link_coefficients: vec![0; total * coefficient_count],
+            factor_scale,
+            hierarchy_builder: (params.hierarchy == "kd") as u32,
+            enclosed_surfels: enclosed as u32,
+        };
+        let half = |value: f32| half::f16::from_f32(value).to_bits();
+        if form == LinkForm::Runtime {
+            bake.link_factors = vec![0; total];
+            bake.link_cones = vec![0; total];
+            bake.link_directions = vec![[0; 2]; total];
+        }
+        for (cache, (nodes, runtime, coefficients)) in per_cache.into_iter().enumerate() {
+            let base = cache * links_per_cache;
+            bake.link_nodes[base..base + nodes.len()].copy_from_slice(&nodes);
+            for (slot, (factor, cone, direction)) in runtime.into_iter().enumerate() {
+                bake.link_factors[base + slot] = half(factor * factor_scale);
+                bake.link_cones[base + slot] = half(cone);
+                bake.link_directions[base + slot] = octahedral_encode(direction);
+            }
+            for (slot, value) in coefficients.into_iter().enumerate() {
+                bake.link_coefficients[base * coefficient_count + slot] =
+                    half(value * factor_scale);
+            }
+        }
+        Ok(bake)
+    }
+
+    pub fn cache_count(&self) -> usize {
+        self.caches.positions.len()
+    }
+
+    /// Run-time projection links: node, factor, cone, direction.
+    pub fn link_bytes(&self) -> usize {
+        self.link_nodes.len() * 4
+            + self.link_factors.len() * 2
+            + self.link_cones.len() * 2
+            + self.link_directions.len() * 4
+            + self.link_coefficients.len() * 2
+    }
+
+    pub fn encode(&self) -> Vec<u8> {
+        let mut writer = PayloadWriter::with_capacity(self.link_bytes() + self.surfels.len() * 64);
+        writer.u32(PAYLOAD_VERSION);
+        let surfels = &self.surfels;
+        writer.f32(surfels.area);
+        writer.vectors(&surfels.positions);
+        writer.vectors(&surfels.normals);
+        writer.u32s(&surfels.triangles);
+        let barycentrics: Vec<f32> = surfels
+            .barycentrics
+            .iter()
+            .flat_map(|b| b.to_array())
+            .collect();
+        writer.f32s(&barycentrics);
+        writer.vectors(&surfels.albedos);
+        writer.vectors(&surfels.emission);
+        let hierarchy = &self.hierarchy;
+        writer.u32(hierarchy.leaf_count);
+        let children: Vec<u32> = hierarchy.children.iter().flatten().copied().collect();
+        writer.u32s(&children);
+        writer.u32s(&hierarchy.first_leaf);
+        writer.u32s(&hierarchy.leaves);
+        writer.f32(self.cache_atlas_metres);
+        let caches = &self.caches;
+        writer.vectors(&caches.positions);
+        writer.vectors(&caches.normals);
+        writer.u32(caches.lightmap_count as u32);
+        for dim in caches.grid.dims {
+            writer.u32(dim);
+        }
+        writer.vectors(&[caches.grid.origin, caches.grid.step]);
+        writer.u32s(&caches.grid_cache);
+        for count in [
+            caches.moved,
+            caches.stuck,
+            caches.grid_moved,
+            caches.grid_culled,
+        ] {
+            writer.u32(count as u32);
+        }
+        writer.u32(self.links_per_cache as u32);
+        writer.u32(self.projected_bands as u32);
+        writer.u32s(&self.link_nodes);
+        writer.halves(&self.link_factors);
+        writer.halves(&self.link_cones);
+        let directions: Vec<u16> = self.link_directions.iter().flatten().copied().collect();
+        writer.halves(&directions);
+        writer.halves(&self.link_coefficients);
+        writer.f32(self.factor_scale);
+        writer.u32(self.hierarchy_builder);
+        writer.u32(self.enclosed_surfels);
+        writer.finish()
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = PayloadReader::new(bytes, "pic");
+        let version = reader.u32()?;
+        if version != PAYLOAD_VERSION {
+            return Err(reader.corrupt(&format!(
+                "PIC payload version {version}, this relight reads {PAYLOAD_VERSION}: bake again"
+            )));
+        }
+        let area = reader.finite()?;
+        let positions = reader.vectors()?;
+        let normals = reader.vectors()?;
+        let triangles = reader.u32s()?;
+        let barycentrics: Vec<Vec2> = reader
+            .f32s()?
+            .chunks_exact(2)
+            .map(|pair| Vec2::new(pair[0], pair[1]))
+            .collect();
+        let albedos = reader.vectors()?;
+        let emission = reader.vectors()?;
+        let n = positions.len();
+        if [
+            normals.len(),
+            triangles.len(),
+            barycentrics.len(),
+            albedos.len(),
+            emission.len(),
+        ]
+        .iter()
+        .any(|&len| len != n)
+        {
+            return Err(reader.corrupt("surfel arrays differ in length"));
+        }
+        let surfels = Surfels {
+            positions,
+            normals,
+            triangles,
+            barycentrics,
+            albedos,
+            emission,
+            area,
+        };
+        let leaf_count = reader.u32()?;
+        let children: Vec<[u32; 2]> = reader
+            .u32s()?
+            .chunks_exact(2)
+            .map(|pair| [pair[0], pair[1]])
+            .collect();
+        let first_leaf = reader.u32s()?;
+        let leaves = reader.u32s()?;
+        let node_count = first_leaf.len();
+        let hierarchy_ok = leaf_count as usize == n
+            && leaves.len() == node_count
+            && node_count == (2 * n).saturating_sub(1)
+            && children.len() + n == node_count
+            && children
+                .iter()
+                .enumerate()
+                .all(|(k, pair)| pair.iter().all(|&child| (child as usize) < n + k))
+            && first_leaf
+                .iter()
+                .zip(&leaves)
+                .all(|(&first, &count)| count >= 1 && first as usize + count as usize <= n);
+        if !hierarchy_ok {
+            return Err(reader.corrupt("the surfel hierarchy is inconsistent"));
+        }
+        let hierarchy = Hierarchy {
+            leaf_count,
+            children,
+            first_leaf,
+            leaves,
+        };
+        let cache_atlas_metres = reader.finite()?;
+        let cache_positions = reader.vectors()?;
+        let cache_normals = reader.vectors()?;
+        let lightmap_count = reader.u32()? as usize;
+        let dims = [reader.u32()?, reader.u32()?, reader.u32()?];
+        let grid_vectors = reader.vectors()?;
+        let grid_cache = reader.u32s()?;
+        let counts = [reader.u32()?, reader.u32()?, reader.u32()?, reader.u32()?];
+        let cache_count = cache_positions.len();
+        let grid_points = dims.iter().map(|&d| d as u64).product::<u64>();
+        if cache_normals.len() != cache_count
+            || lightmap_count > cache_count
+            || grid_vectors.len() != 2
+            || grid_points != grid_cache.len() as u64
+            || grid_cache
+                .iter()
+                .any(|&cache| cache != u32::MAX && cache as usize >= cache_count)
+        {
+            return Err(reader.corrupt("the cache placement is inconsistent"));
+        }
+        let caches = CachePlacement {
+            positions: cache_positions,
+            normals: cache_normals,
+            lightmap_count,
+            grid: GridLayout {
+                dims,
+                origin: grid_vectors[0],
+                step: grid_vectors[1],
+            },
+            grid_cache,
+            moved: counts[0] as usize,
+            stuck: counts[1] as usize,
+            grid_moved: counts[2] as usize,
+            grid_culled: counts[3] as usize,
+        };
+        let links_per_cache = reader.u32()? as usize;
+        let projected_bands = reader.u32()? as usize;
+        let link_nodes = reader.u32s()?;
+        let link_factors = reader.halves()?;
+        let link_cones = reader.halves()?;
+        let link_directions: Vec<[u16; 2]> = reader
+            .halves()?
+            .chunks_exact(2)
+            .map(|pair| [pair[0], pair[1]])
+            .collect();
+        let link_coefficients = reader.halves()?;
+        let factor_scale = reader.finite()?;
+        let hierarchy_builder = reader.u32()?;
+        let enclosed_surfels = reader.u32()?;
+        reader.end()?;
+        let total = cache_count * links_per_cache;
+        let runtime = projected_bands == 0;
+        let links_ok = links_per_cache % LINK_ALIGNMENT == 0
+            && projected_bands <= relight_core::sh::MAX_BANDS
+            && link_nodes.len() == total
+            && link_nodes
+                .iter()
+                .all(|&node| (node as usize) < node_count.max(1))
+            && if runtime {
+                link_factors.len() == total
+                    && link_cones.len() == total
+                    && link_directions.len() == total
+            } else {
+                link_coefficients.len() == total * projected_bands * projected_bands
+            };
+        if !links_ok || factor_scale <= 0.0 {
+            return Err(reader.corrupt("the links are inconsistent"));
+        }
+        Ok(PicBake {
+            surfels,
+            hierarchy,
+            cache_atlas_metres,
+            caches,
+            links_per_cache,
+            projected_bands,
+            link_nodes,
+            link_factors,
+            link_cones,
+            link_directions,
+            link_coefficients,
+            factor_scale,
+            hierarchy_builder,
+            enclosed_surfels,
+        })
+    }
+}

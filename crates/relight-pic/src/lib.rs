@@ -1,0 +1,315 @@
+//! PIC: Precomputed Illuminance Composition (Jendersie, Kuri and Grosch,
+//! "Real-Time Global Illumination Using Precomputed Illuminance Composition
+//! with Chrominance Compression", JCGT 2016): surfels sample the scene's
+//! light, a cluster hierarchy carries their flux, and precomputed links from
+//! a cut of that hierarchy light SH caches in a lightmap and a grid.
+//!
+//! Data flow. Bake: equal-area surfels over every triangle (Halton samples
+//! in proportion to area, tangential relaxation); a binary hierarchy over
+//! them (agglomerative clustering with the paper's metric plus a visibility
+//! term, or a kd-tree); caches at the texels of a lightmap atlas (the
+//! scene's own or a coarser one with about `lightmap_caches` texels) and on
+//! a grid, moved out of geometry; per cache the `links` nodes of largest
+//! visible solid angle, refined top down, each with a scalar factor, cone
+//! and direction (runtime projection, 12 bytes) or SH coefficients.
+//!
+//! Every frame: surfel lighting (the direct-light service at each surfel,
+//! the light of emissive surfaces through the links, and last frame's
+//! caches for further bounces) into flux per leaf in YCoCg; the pull sums
+//! flux up the tree; cache lighting sums linked flux times transport into
+//! SH (`bands` for luma, `chroma_bands` for chroma); shading reads the
+//! caches bilinearly in the lightmap (static surfaces) or trilinearly in
+//! the grid (points in space) and convolves them with the cosine lobe, or
+//! with a Phong lobe for glossy reflection.
+//!
+//! | parameter | default | meaning |
+//! |---|---|---|
+//! | `preset` | `""` | `moderate` (32k surfels, 128 links, 3 bands) or `high` (128k, 254, 4): the paper's Sponza settings; other keys override it |
+//! | `surfels` | 32768 | n_s |
+//! | `links` | 128 | n_L, links per cache (stored padded to a multiple of 8) |
+//! | `bands` | 3 | SH bands of the caches (2 to 8); with `projected` also of the links |
+//! | `chroma_bands` | 0 | bands of the chroma channels Co, Cg (section 4.8); 0 = `bands` |
+//! | `projected` | false | links hold SH coefficients (Appendix A) instead of runtime projection |
+//! | `hierarchy` | `hac` | `hac` (agglomerative) or `kd` (kd-tree) |
+//! | `normal_weight` | 0.1 | C_n of the clustering metric |
+//! | `balance_weight` | 0.02 | C_b |
+//! | `visibility_weight` | 1 | added for clusters whose surfels cannot see each other (0 = the paper's metric) |
+//! | `relaxation` | 4 | surfel relaxation steps |
+//! | `lightmap_caches` | 8192 | lightmap caches wanted; a coarser atlas than the scene's is built for them when the scene's has more texels (0 = always the scene's) |
+//! | `grid_cells` | 2304 | grid caches over the scene's bounds (the paper: 24 x 8 x 12) |
+//! | `grid` | `[0, 0, 0]` | explicit grid dimensions |
+//! | `node_samples` | 16 | surfel samples per node while choosing links |
+//! | `link_samples` | 32 | surfel samples per link factor |
+//! | `leak_refinement` | 1 | extra refinement priority of partly hidden nodes |
+//! | `bounces` | 16 | 1 = single bounce; more = last frame's caches light the surfels, and the first update runs this many passes |
+//! | `area_lights` | `links` | `links`: emissive surfels send their light through the links (the paper); `direct`: the direct-light service lights surfels from emissive triangles too |
+//! | `specular` | 0 | specular reflectance of materials with a Phong exponent |
+//! | `seed` | 1 | |
+//!
+//! Known limits and choices:
+//! - Flux is carried in units of one surfel's area (the sum of the leaves'
+//!   radiosities), so factors stay in f16 range whatever the scene's scale;
+//!   one power-of-two scale per bake keeps them normal f16 numbers.
+//! - A surfel sample is a disc: solid angle a cos / (d^2 + a / (2 pi)),
+//!   which is a / d^2 far away and the disc's 2 pi at contact, instead of
+//!   the paper's unbounded a cos / d^2.
+//! - Runtime-projection cones match the samples' mean resultant length, so
+//!   bands 0 and 1 of each link are those of its samples.
+//! - Clusters whose representative surfels cannot see each other pay
+//!   `visibility_weight` in the metric, and links refine partly hidden
+//!   nodes first: both fight the leak of the paper's Figure 9c.
+//! - Sponza's 4666 lightmap charts do not fit a 128 x 128 atlas, so its
+//!   cache atlas is as coarse as gives about `lightmap_caches` texels.
+
+mod bake;
+pub mod caches;
+pub mod hierarchy;
+mod kernels;
+pub mod links;
+mod runtime;
+pub mod surfels;
+
+pub use bake::PicBake;
+pub use runtime::{Pic, RuntimeSettings};
+
+use relight_technique::{
+    parse_params, with_scene_section, Progress, SceneContext, Technique, TechniqueError,
+    TechniqueKind,
+};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// The parameters only the bake reads.
+pub const BAKE_PARAMETERS: [&str; 17] = [
+    "preset",
+    "surfels",
+    "links",
+    "projected",
+    "hierarchy",
+    "normal_weight",
+    "balance_weight",
+    "visibility_weight",
+    "relaxation",
+    "lightmap_caches",
+    "grid_cells",
+    "grid",
+    "node_samples",
+    "link_samples",
+    "leak_refinement",
+    "seed",
+    "bands",
+];
+
+/// Parameters of PIC, bake and run time together.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PicParams {
+    pub preset: String,
+    pub surfels: u32,
+    pub links: u32,
+    pub bands: u32,
+    pub chroma_bands: u32,
+    pub projected: bool,
+    pub hierarchy: String,
+    pub normal_weight: f32,
+    pub balance_weight: f32,
+    pub visibility_weight: f32,
+    pub relaxation: u32,
+    pub lightmap_caches: u32,
+    pub grid_cells: u32,
+    pub grid: [u32; 3],
+    pub node_samples: u32,
+    pub link_samples: u32,
+    pub leak_refinement: f32,
+    pub bounces: u32,
+    pub area_lights: String,
+    pub specular: f32,
+    pub seed: u64,
+}
+
+impl Default for PicParams {
+    fn default() -> Self {
+        Self {
+            preset: String::new(),
+            surfels: 32768,
+            links: 128,
+            bands: 3,
+            chroma_bands: 0,
+            projected: false,
+            hierarchy: "hac".into(),
+            normal_weight: 0.1,
+            balance_weight: 0.02,
+            visibility_weight: 1.0,
+            relaxation: 4,
+            lightmap_caches: 8192,
+            grid_cells: 2304,
+            grid: [0, 0, 0],
+            node_samples: 16,
+            link_samples: 32,
+            leak_refinement: 1.0,
+            bounces: 16,
+            area_lights: "links".into(),
+            specular: 0.0,
+            seed: 1,
+        }
+    }
+}
+
+impl PicParams {
+    /// The defaults of a preset (`""`, `moderate` or `high`).
+    pub fn preset(name: &str) -> Result<Self, TechniqueError> {
+        let mut params = Self::default();
+        match name {
+            "" | "moderate" => {}
+            "high" => {
+                params.surfels = 131072;
+                params.links = 254;
+                params.bands = 4;
+            }
+            other => {
+                return Err(relight_technique::ParamError {
+                    technique: "pic",
+                    message: format!("unknown preset '{other}': use moderate or high"),
+                }
+                .into())
+            }
+        }
+        params.preset = name.to_string();
+        Ok(params)
+    }
+
+    /// Parameters from the scene file's `[pic]` table and `pairs` on top; a
+    /// `preset` among them sets the defaults the others override.
+    pub fn from_scene(
+        context: &SceneContext,
+        pairs: &[(String, String)],
+    ) -> Result<Self, TechniqueError> {
+        let merged = with_scene_section(&context.scene, "pic", pairs);
+        let preset = merged
+            .iter()
+            .rev()
+            .find(|(key, _)| key == "preset")
+            .map(|(_, value)| value.trim_matches('"').to_string())
+            .unwrap_or_default();
+        let rest: Vec<(String, String)> = merged
+            .into_iter()
+            .filter(|(key, _)| key != "preset")
+            .collect();
+        let params = parse_params("pic", &Self::preset(&preset)?, &rest)?;
+        params.validate()?;
+        Ok(params)
+    }
+
+    fn validate(&self) -> Result<(), TechniqueError> {
+        let problem = if self.surfels == 0 {
+            Some("surfels must be at least 1".to_string())
+        } else if self.links == 0 {
+            Some("links must be at least 1".into())
+        } else if !(2..=8).contains(&self.bands) {
+            Some("bands must be 2 to 8".into())
+        } else if self.chroma_bands > self.bands {
+            Some("chroma_bands must be at most bands (0 = bands)".into())
+        } else if self.chroma_bands == 1 {
+            Some("chroma_bands must be 0 or 2 to bands".into())
+        } else if self.hierarchy != "hac" && self.hierarchy != "kd" {
+            Some(format!(
+                "hierarchy '{}' is unknown: use hac or kd",
+                self.hierarchy
+            ))
+        } else if [
+            self.normal_weight,
+            self.balance_weight,
+            self.visibility_weight,
+            self.leak_refinement,
+        ]
+        .iter()
+        .any(|w| !(w.is_finite() && *w >= 0.0))
+        {
+            Some("normal_weight, balance_weight, visibility_weight and leak_refinement must be finite and >= 0".into())
+        } else if self.node_samples == 0 || self.link_samples == 0 {
+            Some("node_samples and link_samples must be at least 1".into())
+        } else if self.grid_cells == 0 && self.grid.contains(&0) {
+            Some("grid_cells must be at least 1 (or give grid = [x, y, z])".into())
+        } else if self.bounces == 0 {
+            Some("bounces must be at least 1".into())
+        } else if self.area_lights != "links" && self.area_lights != "direct" {
+            Some(format!(
+                "area_lights '{}' is unknown: use links or direct",
+                self.area_lights
+            ))
+        } else if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {
+            Some("specular must be between 0 and 1".into())
+        } else {
+            None
+        };
+        match problem {
+            Some(message) => Err(relight_technique::ParamError {
+                technique: "pic",
+                message,
+            }
+            .into()),
+            None => Ok(()),
+        }
+    }
+
+    pub fn runtime(&self) -> RuntimeSettings {
+        RuntimeSettings {
+            bands: self.bands as usize,
+            chroma_bands: if self.chroma_bands == 0 {
+                self.bands as usize
+            } else {
+                self.chroma_bands as usize
+            },
+            bounces: self.bounces,
+            area_lights_through_links: self.area_lights == "links",
+            specular: self.specular,
+        }
+    }
+}
+
+/// The PIC technique kind for the CLI's table.
+pub struct PicKind;
+
+impl TechniqueKind for PicKind {
+    fn name(&self) -> &'static str {
+        "pic"
+    }
+    fn summary(&self) -> &'static str {
+        "Precomputed Illuminance Composition: surfels, cluster hierarchy, precomputed links into SH caches in a lightmap and a grid"
+    }
+    fn needs_bake(&self) -> bool {
+        true
+    }
+    fn bake(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let params = PicParams::from_scene(context, params)?;
+        let bake = PicBake::build(context, &params, progress)?;
+        tracing::info!(
+            "pic bake: {} surfels, {} nodes (depth {}), {} caches ({} lightmap, {} grid), {} links each",
+            bake.surfels.len(),
+            bake.hierarchy.node_count(),
+            bake.hierarchy.depth(),
+            bake.cache_count(),
+            bake.caches.lightmap_count,
+            bake.cache_count() - bake.caches.lightmap_count,
+            bake.links_per_cache
+        );
+        Ok(bake.encode())
+    }
+    fn create(
+        &self,
+        context: Arc<SceneContext>,
+        bake: Option<&[u8]>,
+        params: &[(String, String)],
+        _progress: &dyn Progress,
+    ) -> Result<Box<dyn Technique>, TechniqueError> {
+        let params = PicParams::from_scene(&context, params)?;
+        let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "pic" })?;
+        let bake = PicBake::decode(bake)?;
+        Ok(Box::new(Pic::new(context, bake, params.runtime())?))
+    }
+}

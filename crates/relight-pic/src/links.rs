@@ -1,0 +1,300 @@
+//! Link generation (sections 4.5 and 4.6, Appendix A): for every cache the
+//! `n_L` most important sender nodes, found top down by refining the node
+//! with the largest visible solid angle, and their transport factors.
+//!
+//! Every surfel sample stands for its disc: solid angle
+//! Omega = a cos(theta_s) / (d^2 + a / (2 pi)) (a / d^2 far away, the
+//! disc's full 2 pi when the cache touches it) with a visibility ray. Flux
+//! flows through the tree in units of one surfel's area (Phi' = sum of the
+//! leaves' radiosities), so a node's radiance is Phi' / (pi * leaves) and
+//! the factor folds in 1 / (pi * leaves) (section 4.1).
+
+use crate::hierarchy::Hierarchy;
+use crate::surfels::Surfels;
+use glam::Vec3;
+use relight_core::sampling::SampleStream;
+use relight_core::sh;
+use relight_trace::{Bvh, Ray};
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::f32::consts::PI;
+
+/// How a link carries its transport.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LinkForm {
+    /// Scalar factor, cone and direction, projected into SH every frame
+    /// (section 4.6): 12 bytes, any band count at run time.
+    Runtime,
+    /// The factor projected into SH at bake time (section 3.1, Appendix A):
+    /// `bands^2` f16 coefficients per link.
+    Projected { bands: usize },
+}
+
+/// What link generation needs to know.
+#[derive(Clone, Copy, Debug)]
+pub struct LinkSettings {
+    pub links: usize,
+    /// Surfel samples that estimate a node's importance while refining.
+    pub node_samples: u32,
+    /// Surfel samples for the final factor of each link.
+    pub link_samples: u32,
+    /// Extra refinement priority for nodes whose samples are partly hidden
+    /// or face away: such a node's flux is averaged over surfels the cache
+    /// cannot see, which leaks light.
+    pub leak_refinement: f32,
+    pub form: LinkForm,
+    pub seed: u64,
+}
+
+/// One cache's links before encoding.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RuntimeLink {
+    pub node: u32,
+    /// Omega_visible / (Omega_cone * pi * leaves).
+    pub factor: f32,
+    /// 1 - cos(alpha) of the cone.
+    pub one_minus_cos: f32,
+    pub direction: Vec3,
+}
+
+/// The scene as link generation samples it.
+pub struct Senders<'a> {
+    pub surfels: &'a Surfels,
+    pub hierarchy: &'a Hierarchy,
+    pub bvh: &'a Bvh,
+    pub epsilon: f32,
+}
+
+/// Sums over one node's samples.
+#[derive(Clone, Copy, Default)]
+struct NodeEstimate {
+    /// Visible solid angle, and direction-weighted sum.
+    solid_angle: f32,
+    direction_sum: Vec3,
+    visible_samples: u32,
+    samples: u32,
+}
+
+impl Senders<'_> {
+    /// Solid angle and direction of leaf `surfel` seen from the cache, with
+    /// its visibility; zero when it faces away, is below the cache's horizon
+    /// or hidden.
+    fn sample(&self, origin: Vec3, normal: Vec3, surfel: usize) -> Option<(f32, Vec3)> {
+        let target = self.surfels.positions[surfel];
+        let surfel_normal = self.surfels.normals[surfel];
+        let offset = target - origin;
+        let distance_squared = offset.length_squared();
+        if distance_squared <= 0.0 {
+            return None;
+        }
+        let direction = offset / distance_squared.sqrt();
+        let cos_sender = -surfel_normal.dot(direction);
+        if cos_sender <= 0.0 || (normal != Vec3::ZERO && normal.dot(direction) <= 0.0) {
+            return None;
+        }
+        let lifted = target + surfel_normal * self.epsilon;
+        let ray = Ray {
+            origin,
+            direction: lifted - origin,
+            t_max: 1.0,
+        };
+        if self.bvh.occluded(&ray) {
+            return None;
+        }
+        let area = self.surfels.area;
+        Some((
+            area * cos_sender / (distance_squared + area / (2.0 * PI)),
+            direction,
+        ))
+    }
+
+    /// Stratified samples over a node's leaves (every leaf when it has at
+    /// most `samples`), scaled to the whole node.
+    fn estimate(
+        &self,
+        origin: Vec3,
+        normal: Vec3,
+        node: u32,
+        samples: u32,
+        rng: &mut relight_core::Pcg32,
+        mut each: impl FnMut(f32, f32, Vec3),
+    ) -> NodeEstimate {
+        let first = self.hierarchy.first_leaf[node as usize];
+        let leaves = self.hierarchy.leaves[node as usize];
+        let taken = leaves.min(samples.max(1));
+        let scale = leaves as f32 / taken as f32;
+        let mut estimate = NodeEstimate {
+            samples: taken,
+            ..Default::default()
+        };
+        for index in 0..taken {
+            let leaf = if taken == leaves {
+                first + index
+            } else {
+                let position = (index as f32 + rng.next_f32()) * leaves as f32 / taken as f32;
+                first + (position as u32).min(leaves - 1)
+            };
+            if let Some((solid_angle, direction)) = self.sample(origin, normal, leaf as usize) {
+                let weighted = solid_angle * scale;
+                estimate.solid_angle += weighted;
+                estimate.direction_sum += direction * weighted;
+                estimate.visible_samples += 1;
+                each(weighted, solid_angle, direction);
+            }
+        }
+        estimate
+    }
+
+    /// Priority of refining a node: its visible solid angle, raised when
+    /// part of it is hidden (a leak risk).
+    fn priority(estimate: &NodeEstimate, leak_refinement: f32) -> f32 {
+        let hidden = 1.0 - estimate.visible_samples as f32 / estimate.samples.max(1) as f32;
+        estimate.solid_angle * (1.0 + leak_refinement * hidden)
+    }
+
+    /// The cut of at most `settings.links` visible nodes for the cache at
+    /// `position` (hemispherical around `normal`, spherical when zero), in
+    /// node order.
+    pub fn cut(
+        &self,
+        cache: u64,
+        position: Vec3,
+        normal: Vec3,
+        settings: &LinkSettings,
+    ) -> Vec<u32> {
+        let origin = position + normal * self.epsilon;
+        let mut rng = SampleStream::new(settings.seed, cache, 0xC07);
+        let mut finished = Vec::new();
+        let mut open: BinaryHeap<(u32, Reverse<u32>)> = BinaryHeap::new();
+        if self.hierarchy.node_count() == 0 {
+            return finished;
+        }
+        let root = self.hierarchy.root();
+        let estimate = self.estimate(
+            origin,
+            normal,
+            root,
+            settings.node_samples,
+            &mut rng,
+            |_, _, _| {},
+        );
+        if estimate.solid_angle > 0.0 {
+            open.push((
+                Self::priority(&estimate, settings.leak_refinement).to_bits(),
+                Reverse(root),
+            ));
+        }
+        while finished.len() + open.len() < settings.links {
+            let Some((_, Reverse(node))) = open.pop() else {
+                break;
+            };
+            if self.hierarchy.is_leaf(node) {
+                finished.push(node);
+                continue;
+            }
+            for child in self.hierarchy.children_of(node) {
+                let estimate = self.estimate(
+                    origin,
+                    normal,
+                    child,
+                    settings.node_samples,
+                    &mut rng,
+                    |_, _, _| {},
+                );
+                if estimate.solid_angle > 0.0 {
+                    let priority = Self::priority(&estimate, settings.leak_refinement);
+                    open.push((priority.to_bits(), Reverse(child)));
+                }
+            }
+        }
+        finished.extend(open.into_iter().map(|(_, Reverse(node))| node));
+        finished.sort_unstable();
+        finished
+    }
+
+    /// Runtime-projection link to `node`: factor, cone and mean direction.
+    /// The cone's spread matches the samples' mean resultant length
+    /// (R = (1 + cos alpha) / 2 for a uniform cone), but is never narrower
+    /// than the visible solid angle, so bands 0 and 1 are those of the
+    /// samples.
+    pub fn runtime_link(
+        &self,
+        cache: u64,
+        position: Vec3,
+        normal: Vec3,
+        node: u32,
+        settings: &LinkSettings,
+    ) -> RuntimeLink {
+        let origin = position + normal * self.epsilon;
+        let mut rng = SampleStream::new(settings.seed, cache, 0x1000_0000 + node as u64);
+        let estimate = self.estimate(
+            origin,
+            normal,
+            node,
+            settings.link_samples,
+            &mut rng,
+            |_, _, _| {},
+        );
+        if estimate.solid_angle <= 0.0 {
+            return RuntimeLink {
+                node,
+                ..Default::default()
+            };
+        }
+        let resultant = (estimate.direction_sum.length() / estimate.solid_angle).min(1.0);
+        let one_minus_cos = (2.0 * (1.0 - resultant))
+            .max(estimate.solid_angle / (2.0 * PI))
+            .min(2.0);
+        let cone = 2.0 * PI * one_minus_cos;
+        let leaves = self.hierarchy.leaves[node as usize] as f32;
+        RuntimeLink {
+            node,
+            factor: estimate.solid_angle / (cone * PI * leaves),
+            one_minus_cos,
+            direction: estimate.direction_sum.normalize_or_zero(),
+        }
+    }
+
+    /// SH-projected link to `node` (Appendix A), each sample projected as
+    /// the small cone of its disc rather than a single direction.
+    pub fn projected_link(
+        &self,
+        cache: u64,
+        position: Vec3,
+        normal: Vec3,
+        node: u32,
+        bands: usize,
+        settings: &LinkSettings,
+        coefficients: &mut [f32],
+    ) {
+        let origin = position + normal * self.epsilon;
+        let mut rng = SampleStream::new(settings.seed, cache, 0x1000_0000 + node as u64);
+        coefficients.fill(0.0);
+        let mut basis = [0.0f32; 64];
+        let leaves = self.hierarchy.leaves[node as usize] as f32;
+        let folded = 1.0 / (PI * leaves);
+        self.estimate(
+            origin,
+            normal,
+            node,
+            settings.link_samples,
+            &mut rng,
+            |weighted, solid_angle, direction| {
+                // The disc's own cone, carrying the weight of the leaves this
+                // sample stands for (cone[0] is the cone's solid angle).
+                let cone = sh::cone_band_factors(1.0 - (solid_angle / (2.0 * PI)).min(2.0));
+                let scale = if cone[0] > 0.0 {
+                    weighted / cone[0]
+                } else {
+                    0.0
+                };
+                sh::evaluate(direction, bands, &mut basis);
+                for band in 0..bands {
+                    for index in band * band..(band + 1) * (band + 1) {
+                        coefficients[index] += folded * scale * cone[band] * basis[index];
+                    }
+                }
+            },
+        );
+    }
+}

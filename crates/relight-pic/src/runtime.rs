@@ -1,0 +1,646 @@
+//! The PIC run time: surfel lighting, pull, cache lighting, shading.
+
+use crate::bake::PicBake;
+use crate::kernels::{self, LinkSlice};
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
+use relight_core::{sh, Rgb};
+use relight_scene::atlas::{Atlas, TexelDensity};
+use relight_technique::{
+    Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
+};
+use std::f32::consts::PI;
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+const NO_CACHE: u32 = u32::MAX;
+
+/// Run-time settings (one bake serves every value of them).
+#[derive(Clone, Copy, Debug)]
+pub struct RuntimeSettings {
+    /// Luma bands of the caches (fixed by the bake for projected links).
+    pub bands: usize,
+    pub chroma_bands: usize,
+    pub bounces: u32,
+    /// Emissive surfels light the caches through the links; the surfels'
+    /// direct light then leaves emissive triangles out.
+    pub area_lights_through_links: bool,
+    pub specular: f32,
+}
+
+pub struct Pic {
+    context: Arc<SceneContext>,
+    bake: PicBake,
+    settings: RuntimeSettings,
+    /// The cache atlas when it is not the scene's.
+    own_atlas: Option<Atlas>,
+    /// Texel -> lightmap cache, gutters pointing at the cache they copy.
+    cache_of_texel: Vec<u32>,
+    /// Per surfel: four lightmap taps (cache, weight).
+    surfel_taps: Vec<[(u32, f32); 4]>,
+    /// Per surfel: A_l Y_lm(normal), `bands^2` values.
+    surfel_basis: Vec<f32>,
+    /// Irradiance at each surfel from emissive surfaces through the links
+    /// (YCoCg), fixed because emission is.
+    surfel_area_light: Vec<Vec3>,
+    surfel_direct: Vec<Rgb>,
+    /// Flux per node, YCoCg, in units of one surfel's area.
+    flux: Vec<Vec3>,
+    /// Per cache: Y (bands^2), Co, Cg (chroma^2 each).
+    cache_sh: Vec<f32>,
+    stride: usize,
+    pull_subtrees: Vec<u32>,
+    pull_top: Vec<u32>,
+    receiver_values: OnceLock<Vec<Rgb>>,
+    timings: StageTimings,
+    updates: u64,
+}
+
+impl Pic {
+    pub fn new(
+        context: Arc<SceneContext>,
+        bake: PicBake,
+        mut settings: RuntimeSettings,
+    ) -> Result<Self, TechniqueError> {
+        if bake.projected_bands > 0 {
+            settings.bands = bake.projected_bands;
+        }
+        settings.chroma_bands = settings.chroma_bands.clamp(1, settings.bands);
+        let own_atlas = if bake.cache_atlas_metres > 0.0 {
+            Some(
+                Atlas::build(
+                    &context.scene,
+                    TexelDensity::MetresPerTexel(bake.cache_atlas_metres),
+                )
+                .map_err(|error| TechniqueError::Other(error.to_string()))?,
+            )
+        } else {
+            None
+        };
+        let atlas = own_atlas.as_ref().unwrap_or(&context.atlas);
+        if atlas.receivers.len() != bake.caches.lightmap_count
+            || bake
+                .surfels
+                .triangles
+                .iter()
+                .any(|&t| t as usize >= context.scene.mesh.triangles.len())
+        {
+            return Err(TechniqueError::Other(format!(
+                "this PIC bake has {} lightmap caches but the scene's cache atlas has {} texels: bake again for this scene and lightmap resolution",
+                bake.caches.lightmap_count,
+                atlas.receivers.len()
+            )));
+        }
+        let mut cache_of_texel = atlas.receiver_of_texel.clone();
+        for &(target, source) in &atlas.dilation {
+            cache_of_texel[target as usize] = cache_of_texel[source as usize];
+        }
+        let coefficients = settings.bands * settings.bands;
+        let stride = coefficients + 2 * settings.chroma_bands * settings.chroma_bands;
+        let surfels = &bake.surfels;
+        let mut surfel_basis = vec![0.0f32; surfels.len() * coefficients];
+        let mut values = [0.0f32; 64];
+        for (normal, row) in surfels
+            .normals
+            .iter()
+            .zip(surfel_basis.chunks_exact_mut(coefficients))
+        {
+            sh::evaluate(*normal, settings.bands, &mut values);
+            for band in 0..settings.bands {
+                let factor = sh::cosine_lobe_factor(band);
+                for index in band * band..(band + 1) * (band + 1) {
+                    row[index] = factor * values[index];
+                }
+            }
+        }
+        let mut technique = Pic {
+            surfel_taps: Vec::new(),
+            surfel_basis,
+            surfel_area_light: vec![Vec3::ZERO; surfels.len()],
+            surfel_direct: vec![Rgb::ZERO; surfels.len()],
+            flux: vec![Vec3::ZERO; bake.hierarchy.node_count()],
+            cache_sh: vec![0.0; bake.cache_count() * stride],
+            stride,
+            pull_subtrees: Vec::new(),
+            pull_top: Vec::new(),
+            receiver_values: OnceLock::new(),
+            timings: StageTimings::default(),
+            updates: 0,
+            cache_of_texel,
+            own_atlas,
+            context,
+            settings,
+            bake,
+        };
+        technique.surfel_taps = (0..technique.bake.surfels.len())
+            .map(|index| {
+                let surfels = &technique.bake.surfels;
+                technique.lightmap_taps(surfels.triangles[index], surfels.barycentrics[index])
+            })
+            .collect();
+        let (subtrees, top) = technique
+            .bake
+            .hierarchy
+            .pull_schedule(4 * rayon::current_num_threads());
+        technique.pull_subtrees = subtrees;
+        technique.pull_top = top;
+        technique.settle_area_lights();
+        Ok(technique)
+    }
+
+    fn atlas(&self) -> &Atlas {
+        self.own_atlas.as_ref().unwrap_or(&self.context.atlas)
+    }
+
+    /// The four lightmap caches around a point and their bilinear weights
+    /// (empty texels dropped, the rest renormalised).
+    fn lightmap_taps(&self, triangle: u32, barycentric: Vec2) -> [(u32, f32); 4] {
+        let atlas = self.atlas();
+        let uv = atlas.uv_of(triangle, barycentric) - Vec2::splat(0.5);
+        let (x0, y0) = (uv.x.floor(), uv.y.floor());
+        let (fx, fy) = (uv.x - x0, uv.y - y0);
+        let mut taps = [(NO_CACHE, 0.0f32); 4];
+        let mut total = 0.0;
+        for (slot, (dx, dy, weight)) in [
+            (0, 0, (1.0 - fx) * (1.0 - fy)),
+            (1, 0, fx * (1.0 - fy)),
+            (0, 1, (1.0 - fx) * fy),
+            (1, 1, fx * fy),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let x = (x0 as i64 + dx).clamp(0, atlas.width as i64 - 1) as usize;
+            let y = (y0 as i64 + dy).clamp(0, atlas.height as i64 - 1) as usize;
+            let cache = self.cache_of_texel[y * atlas.width as usize + x];
+            if cache != NO_CACHE && weight > 0.0 {
+                taps[slot] = (cache, weight);
+                total += weight;
+            }
+        }
+        if total > 0.0 {
+            for tap in &mut taps {
+                tap.1 /= total;
+            }
+        }
+        taps
+    }
+
+    /// Irradiance (YCoCg) of `taps` for a surface whose A_l Y_lm(normal)
+    /// is `basis`.
+    fn irradiance_from_taps(&self, taps: &[(u32, f32)], basis: &[f32]) -> Vec3 {
+        let luma = self.settings.bands * self.settings.bands;
+        let chroma = self.settings.chroma_bands * self.settings.chroma_bands;
+        let mut sum = Vec3::ZERO;
+        for &(cache, weight) in taps {
+            if cache == NO_CACHE {
+                continue;
+            }
+            let row =
+                &self.cache_sh[cache as usize * self.stride..(cache as usize + 1) * self.stride];
+            let mut value = Vec3::ZERO;
+            for index in 0..luma {
+                value.x += row[index] * basis[index];
+            }
+            for index in 0..chroma {
+                value.y += row[luma + index] * basis[index];
+                value.z += row[luma + chroma + index] * basis[index];
+            }
+            sum += value * weight;
+        }
+        sum
+    }
+
+    /// Band-weighted basis for a lookup: `factors[l] * Y_lm(direction)`.
+    fn weighted_basis(&self, direction: Vec3, factors: &[f32; sh::MAX_BANDS]) -> [f32; 64] {
+        let mut values = [0.0f32; 64];
+        sh::evaluate(direction, self.settings.bands, &mut values);
+        for band in 0..self.settings.bands {
+            for value in &mut values[band * band..(band + 1) * (band + 1)] {
+                *value *= factors[band];
+            }
+        }
+        values
+    }
+
+    /// The light of emissive surfels, through the links, at every surfel:
+    /// computed once, as emission does not change.
+    fn settle_area_lights(&mut self) {
+        let surfels = &self.bake.surfels;
+        if !self.settings.area_lights_through_links
+            || surfels.emission.iter().all(|e| *e == Rgb::ZERO)
+        {
+            return;
+        }
+        // Radiant exitance pi L_e per unit area: flux in surfel-area units.
+        for (leaf, emission) in surfels.emission.iter().enumerate() {
+            self.flux[leaf] = rgb_to_ycocg(*emission * PI);
+        }
+        self.pull();
+        self.light_caches();
+        self.surfel_area_light = self.feedback_irradiance();
+        self.cache_sh.fill(0.0);
+    }
+
+    /// Irradiance (YCoCg) at every surfel from the current caches.
+    fn feedback_irradiance(&self) -> Vec<Vec3> {
+        let coefficients = self.settings.bands * self.settings.bands;
+        (0..self.bake.surfels.len())
+            .into_par_iter()
+            .map(|index| {
+                self.irradiance_from_taps(
+                    &self.surfel_taps[index],
+                    &self.surfel_basis[index * coefficients..(index + 1) * coefficients],
+                )
+            })
+            .collect()
+    }
+
+    fn direct_light(&mut self, frame: &Frame) {
+        let mut direct = self.context.direct();
+        if self.settings.area_lights_through_links {
+            direct.settings.area_light_samples = 0;
+        }
+        let surfels = &self.bake.surfels;
+        direct.irradiance_batch(
+            frame.lights,
+            &surfels.positions,
+            &surfels.normals,
+            &mut self.surfel_direct,
+        );
+    }
+
+    /// Leaf flux: albedo x (direct + area lights + last indirect).
+    fn light_surfels(&mut self, feedback: bool) {
+        let indirect = feedback.then(|| self.feedback_irradiance());
+        let surfels = &self.bake.surfels;
+        let direct = &self.surfel_direct;
+        let area = &self.surfel_area_light;
+        self.flux[..surfels.len()]
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(index, flux)| {
+                let mut irradiance = direct[index] + ycocg_to_rgb(area[index]);
+                if let Some(indirect) = &indirect {
+                    irradiance += ycocg_to_rgb(indirect[index]).max(Rgb::ZERO);
+                }
+                *flux = rgb_to_ycocg(surfels.albedos[index] * irradiance);
+            });
+    }
+
+    /// Flux up the tree: disjoint subtrees in parallel, then the nodes
+    /// above them.
+    fn pull(&mut self) {
+        let hierarchy = &self.bake.hierarchy;
+        let leaf_count = hierarchy.leaf_count as usize;
+        let flux = SharedFlux(self.flux.as_mut_ptr());
+        self.pull_subtrees.par_iter().for_each(|&root| {
+            if hierarchy.is_leaf(root) {
+                return;
+            }
+            // A subtree's internal nodes are contiguous in post order.
+            let internal = hierarchy.leaves[root as usize] as usize - 1;
+            let start = root as usize + 1 - internal;
+            for node in start..=root as usize {
+                let [left, right] = hierarchy.children[node - leaf_count];
+                // SAFETY: subtrees are disjoint, so each thread writes only
+                // its own subtree's nodes and reads only its own children.
+                unsafe {
+                    let base = flux.pointer();
+                    let value = *base.add(left as usize) + *base.add(right as usize);
+                    *base.add(node) = value;
+                }
+            }
+        });
+        for &node in &self.pull_top {
+            let [left, right] = hierarchy.children[node as usize - leaf_count];
+            self.flux[node as usize] = self.flux[left as usize] + self.flux[right as usize];
+        }
+    }
+
+    fn light_caches(&mut self) {
+        let bake = &self.bake;
+        let flux = &self.flux;
+        let links = bake.links_per_cache;
+        let bands = self.settings.bands;
+        let chroma = self.settings.chroma_bands;
+        let luma_count = bands * bands;
+        let chroma_count = chroma * chroma;
+        let inverse_scale = 1.0 / bake.factor_scale;
+        let stride = self.stride;
+        let fast = bands <= 4 && bake.projected_bands == 0 && kernels_available();
+        self.cache_sh
+            .par_chunks_mut(stride * 64)
+            .enumerate()
+            .for_each(|(chunk, rows)| {
+                for (offset, row) in rows.chunks_exact_mut(stride).enumerate() {
+                    let cache = chunk * 64 + offset;
+                    let range = cache * links..(cache + 1) * links;
+                    let (luma, rest) = row.split_at_mut(luma_count);
+                    let (co, cg) = rest.split_at_mut(chroma_count);
+                    if bake.projected_bands > 0 {
+                        light_cache_projected(bake, range, flux, bands, chroma, luma, co, cg);
+                    } else {
+                        let slice = LinkSlice {
+                            nodes: &bake.link_nodes[range.clone()],
+                            factors: &bake.link_factors[range.clone()],
+                            cones: &bake.link_cones[range.clone()],
+                            directions: &bake.link_directions[range],
+                        };
+                        if fast {
+                            // SAFETY: `kernels_available` checked the CPU.
+                            unsafe { light_cache_avx2(&slice, flux, bands, chroma, luma, co, cg) };
+                        } else {
+                            kernels::light_cache_general(&slice, flux, bands, chroma, luma, co, cg);
+                        }
+                    }
+                    for value in row.iter_mut() {
+                        *value *= inverse_scale;
+                    }
+                }
+            });
+    }
+
+    /// Diffuse irradiance (RGB) at a point of the static scene.
+    fn surface_irradiance(&self, triangle: u32, barycentric: Vec2, normal: Vec3) -> Rgb {
+        let taps = self.lightmap_taps(triangle, barycentric);
+        let basis = self.weighted_basis(normal, &std::array::from_fn(sh::cosine_lobe_factor));
+        ycocg_to_rgb(self.irradiance_from_taps(&taps, &basis)).max(Rgb::ZERO)
+    }
+
+    /// The eight grid caches around `position` (culled ones dropped).
+    fn grid_taps(&self, position: Vec3) -> [(u32, f32); 8] {
+        let caches = &self.bake.caches;
+        let mut taps = [(NO_CACHE, 0.0f32); 8];
+        if caches.grid_cache.is_empty() {
+            return taps;
+        }
+        let mut total = 0.0;
+        for (slot, (point, weight)) in caches.grid.corners(position).into_iter().enumerate() {
+            let cache = caches.grid_cache[point];
+            if cache != NO_CACHE && weight > 0.0 {
+                taps[slot] = (cache, weight);
+                total += weight;
+            }
+        }
+        if total > 0.0 {
+            for tap in &mut taps {
+                tap.1 /= total;
+            }
+        }
+        taps
+    }
+}
+
+/// The flux buffer shared by the pull's threads.
+#[derive(Clone, Copy)]
+struct SharedFlux(*mut Vec3);
+
+impl SharedFlux {
+    fn pointer(&self) -> *mut Vec3 {
+        self.0
+    }
+}
+// SAFETY: the pull hands each thread a disjoint subtree.
+unsafe impl Send for SharedFlux {}
+unsafe impl Sync for SharedFlux {}
+
+fn kernels_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// The lane kernel compiled for AVX2 and FMA, one instance per band pair.
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
+#[allow(clippy::too_many_arguments)]
+unsafe fn light_cache_avx2(
+    links: &LinkSlice,
+    flux: &[Vec3],
+    bands: usize,
+    chroma: usize,
+    luma: &mut [f32],
+    co: &mut [f32],
+    cg: &mut [f32],
+) {
+    match (bands, chroma) {
+        (2, 2) => kernels::light_cache::<2, 2>(links, flux, luma, co, cg),
+        (2, _) => kernels::light_cache::<2, 1>(links, flux, luma, co, cg),
+        (3, 3) => kernels::light_cache::<3, 3>(links, flux, luma, co, cg),
+        (3, 2) => kernels::light_cache::<3, 2>(links, flux, luma, co, cg),
+        (3, _) => kernels::light_cache::<3, 1>(links, flux, luma, co, cg),
+        (4, 4) => kernels::light_cache::<4, 4>(links, flux, luma, co, cg),
+        (4, 3) => kernels::light_cache::<4, 3>(links, flux, luma, co, cg),
+        (4, 2) => kernels::light_cache::<4, 2>(links, flux, luma, co, cg),
+        (4, _) => kernels::light_cache::<4, 1>(links, flux, luma, co, cg),
+        _ => kernels::light_cache_general(links, flux, bands, chroma, luma, co, cg),
+    }
+}
+
+/// Projected links: coefficients times flux.
+#[allow(clippy::too_many_arguments)]
+fn light_cache_projected(
+    bake: &PicBake,
+    range: std::ops::Range<usize>,
+    flux: &[Vec3],
+    bands: usize,
+    chroma: usize,
+    luma: &mut [f32],
+    co: &mut [f32],
+    cg: &mut [f32],
+) {
+    let count = bands * bands;
+    let chroma_count = chroma * chroma;
+    luma.fill(0.0);
+    co.fill(0.0);
+    cg.fill(0.0);
+    for link in range {
+        let node_flux = flux[bake.link_nodes[link] as usize];
+        let coefficients = &bake.link_coefficients[link * count..(link + 1) * count];
+        for (index, &bits) in coefficients.iter().enumerate() {
+            let value = half::f16::from_bits(bits).to_f32();
+            luma[index] += value * node_flux.x;
+            if index < chroma_count {
+                co[index] += value * node_flux.y;
+                cg[index] += value * node_flux.z;
+            }
+        }
+    }
+}
+
+impl Technique for Pic {
+    fn name(&self) -> &'static str {
+        "pic"
+    }
+
+    fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let passes = if self.updates == 0 {
+            self.settings.bounces
+        } else {
+            1
+        };
+        let feedback = self.settings.bounces > 1;
+        let mut surfel_time = Duration::ZERO;
+        let mut pull_time = Duration::ZERO;
+        let mut cache_time = Duration::ZERO;
+        let start = Instant::now();
+        self.direct_light(frame);
+        surfel_time += start.elapsed();
+        for pass in 0..passes {
+            let start = Instant::now();
+            self.light_surfels(feedback && (pass > 0 || self.updates > 0));
+            surfel_time += start.elapsed();
+            let start = Instant::now();
+            self.pull();
+            pull_time += start.elapsed();
+            let start = Instant::now();
+            self.light_caches();
+            cache_time += start.elapsed();
+        }
+        self.timings.clear();
+        self.timings.stages.push(("surfel lighting", surfel_time));
+        self.timings.stages.push(("pull", pull_time));
+        self.timings.stages.push(("cache lighting", cache_time));
+        self.receiver_values = OnceLock::new();
+        self.updates += 1;
+        Ok(())
+    }
+
+    fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
+        self.surface_irradiance(point.triangle, point.barycentric, point.normal)
+    }
+
+    fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
+        let taps = self.grid_taps(position);
+        let basis = self.weighted_basis(normal, &std::array::from_fn(sh::cosine_lobe_factor));
+        ycocg_to_rgb(self.irradiance_from_taps(&taps, &basis)).max(Rgb::ZERO)
+    }
+
+    fn glossy_radiance(
+        &self,
+        point: &SurfacePoint,
+        toward_viewer: Vec3,
+        exponent: f32,
+    ) -> Option<Rgb> {
+        if self.settings.specular <= 0.0 || exponent <= 1.0 {
+            return None;
+        }
+        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
+            .normalize_or_zero();
+        let taps = self.lightmap_taps(point.triangle, point.barycentric);
+        let basis = self.weighted_basis(reflected, &sh::phong_band_factors(exponent));
+        Some(
+            ycocg_to_rgb(self.irradiance_from_taps(&taps, &basis)).max(Rgb::ZERO)
+                * self.settings.specular,
+        )
+    }
+
+    fn receiver_irradiance(&self) -> Option<&[Rgb]> {
+        Some(self.receiver_values.get_or_init(|| {
+            let receivers = &self.context.atlas.receivers;
+            (0..receivers.len())
+                .into_par_iter()
+                .map(|index| {
+                    self.surface_irradiance(
+                        receivers.triangles[index],
+                        receivers.barycentrics[index],
+                        receivers.normals[index],
+                    )
+                })
+                .collect()
+        }))
+    }
+
+    fn timings(&self) -> &StageTimings {
+        &self.timings
+    }
+
+    fn memory(&self) -> Vec<MemoryEntry> {
+        let bake = &self.bake;
+        let surfels = bake.surfels.len();
+        vec![
+            MemoryEntry::new(
+                "surfels (position, normal, albedo, direct, area light)",
+                surfels * (12 * 5),
+            ),
+            MemoryEntry::new(
+                "hierarchy (children, leaf ranges)",
+                bake.hierarchy.children.len() * 8 + bake.hierarchy.node_count() * 8,
+            ),
+            MemoryEntry::new("flux per node", self.flux.len() * 12),
+            MemoryEntry::new(
+                if bake.projected_bands > 0 {
+                    "links (node + f16 SH)"
+                } else {
+                    "links (node, f16 factor, f16 cone, octahedral direction: 12 B)"
+                },
+                bake.link_bytes(),
+            ),
+            MemoryEntry::new("caches (SH, f32)", self.cache_sh.len() * 4),
+            MemoryEntry::new("lightmap cache index", self.cache_of_texel.len() * 4),
+            MemoryEntry::new(
+                "surfel lightmap taps and basis",
+                self.surfel_taps.len() * 32 + self.surfel_basis.len() * 4,
+            ),
+        ]
+    }
+
+    fn bake_facts(&self) -> Vec<(&'static str, String)> {
+        let bake = &self.bake;
+        let caches = &bake.caches;
+        vec![
+            (
+                "pic surfels",
+                format!(
+                    "{} of {:.3e} m^2 each ({} enclosed by geometry dropped)",
+                    bake.surfels.len(),
+                    bake.surfels.area,
+                    bake.enclosed_surfels
+                ),
+            ),
+            (
+                "pic hierarchy",
+                format!(
+                    "{} ({} nodes, depth {})",
+                    if bake.hierarchy_builder == 1 { "kd-tree" } else { "agglomerative" },
+                    bake.hierarchy.node_count(),
+                    bake.hierarchy.depth()
+                ),
+            ),
+            (
+                "pic caches",
+                format!(
+                    "{} lightmap ({} moved out of geometry, {} stuck) + {} grid of {}x{}x{} ({} moved, {} culled)",
+                    caches.lightmap_count,
+                    caches.moved,
+                    caches.stuck,
+                    bake.cache_count() - caches.lightmap_count,
+                    caches.grid.dims[0],
+                    caches.grid.dims[1],
+                    caches.grid.dims[2],
+                    caches.grid_moved,
+                    caches.grid_culled
+                ),
+            ),
+            (
+                "pic links",
+                format!(
+                    "{} per cache, {}, {:.1} bytes each",
+                    bake.links_per_cache,
+                    if bake.projected_bands > 0 {
+                        format!("SH-projected with {} bands", bake.projected_bands)
+                    } else {
+                        "runtime projection".into()
+                    },
+                    bake.link_bytes() as f64 / bake.link_nodes.len().max(1) as f64
+                ),
+            ),
+        ]
+    }
+}
