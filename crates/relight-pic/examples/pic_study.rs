@@ -11,12 +11,40 @@ use relight_pic::{PicKind, BAKE_PARAMETERS};
 use relight_render::study::run_study;
 use relight_technique::SceneContext;
 
-fn detail(_context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb]) {
+fn detail(context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb]) {
     let sum = |values: &[Rgb]| values.iter().map(|v| luminance(*v) as f64).sum::<f64>();
     println!(
         "    mean luminance ratio {:.3}",
         sum(values) / sum(reference).max(1e-30)
     );
+    if std::env::var_os("PIC_WORST").is_some() {
+        let mut order: Vec<usize> = (0..values.len()).collect();
+        let error = |i: usize| (luminance(values[i]) - luminance(reference[i])).powi(2);
+        order.sort_by(|&a, &b| error(b).total_cmp(&error(a)));
+        let receivers = &context.atlas.receivers;
+        let dark: Vec<usize> = (0..values.len())
+            .filter(|&i| luminance(reference[i]) < 1e-4 * sum(reference) as f32 / values.len() as f32)
+            .collect();
+        let lit: Vec<usize> = (0..values.len()).filter(|i| !dark.contains(i)).collect();
+        let pick = |list: &[usize], v: &[Rgb]| list.iter().map(|&i| v[i]).collect::<Vec<_>>();
+        println!(
+            "    {} receivers dark in the reference; relRMSE over the rest {:.2} %",
+            dark.len(),
+            relight_render::metrics::error_norms(&pick(&lit, values), &pick(&lit, reference))
+                .relative_rmse
+                * 100.0
+        );
+        for &i in order.iter().take(12) {
+            println!(
+                "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
+                i,
+                receivers.positions[i],
+                receivers.normals[i],
+                luminance(values[i]),
+                luminance(reference[i])
+            );
+        }
+    }
 }
 
 fn main() {
