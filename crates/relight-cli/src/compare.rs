@@ -131,6 +131,7 @@ pub fn run(
                 .iter()
                 .filter_map(|pair| pair.strip_prefix(&prefix).map(str::to_string))
                 .collect(),
+            preset: None,
         };
         let mut technique = crate::create_technique(context, &options, quiet)?;
         let mut update_ms = Vec::new();

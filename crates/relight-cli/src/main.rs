@@ -73,6 +73,10 @@ struct TechniqueOptions {
     /// Technique parameter, repeatable: --set key=value.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     set: Vec<String>,
+    /// A technique's named parameter set (pic: moderate or high); the same
+    /// as --set preset=NAME, and --set values override it.
+    #[arg(long)]
+    preset: Option<String>,
 }
 
 #[derive(Subcommand)]
@@ -214,14 +218,17 @@ impl SceneOptions {
 
 impl TechniqueOptions {
     fn pairs(&self) -> Result<Vec<(String, String)>> {
-        self.set
+        let preset = self
+            .preset
             .iter()
-            .map(|pair| {
+            .map(|name| Ok(("preset".to_string(), name.clone())));
+        preset
+            .chain(self.set.iter().map(|pair| {
                 let (key, value) = pair
                     .split_once('=')
                     .with_context(|| format!("--set {pair}: expected KEY=VALUE"))?;
                 Ok((key.trim().to_string(), value.trim().to_string()))
-            })
+            }))
             .collect()
     }
 }

@@ -349,6 +349,7 @@ mod tests {
             });
             let mut basis = [0.0f32; 64];
             evaluate(axis, MAX_BANDS, &mut basis);
+            #[allow(clippy::needless_range_loop)]
             for band in 0..MAX_BANDS {
                 for order in -(band as isize)..=band as isize {
                     let i = index(band, order);

@@ -23,7 +23,9 @@ fn detail(context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb
         order.sort_by(|&a, &b| error(b).total_cmp(&error(a)));
         let receivers = &context.atlas.receivers;
         let dark: Vec<usize> = (0..values.len())
-            .filter(|&i| luminance(reference[i]) < 1e-4 * sum(reference) as f32 / values.len() as f32)
+            .filter(|&i| {
+                luminance(reference[i]) < 1e-4 * sum(reference) as f32 / values.len() as f32
+            })
             .collect();
         let lit: Vec<usize> = (0..values.len()).filter(|i| !dark.contains(i)).collect();
         let pick = |list: &[usize], v: &[Rgb]| list.iter().map(|&i| v[i]).collect::<Vec<_>>();

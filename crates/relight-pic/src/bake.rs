@@ -396,7 +396,7 @@ impl PicBake {
         reader.end()?;
         let total = cache_count * links_per_cache;
         let runtime = projected_bands == 0;
-        let links_ok = links_per_cache % LINK_ALIGNMENT == 0
+        let links_ok = links_per_cache.is_multiple_of(LINK_ALIGNMENT)
             && projected_bands <= relight_core::sh::MAX_BANDS
             && link_nodes.len() == total
             && link_nodes

@@ -216,9 +216,17 @@ mod tests {
             let (mut luma_ref, mut co_ref, mut cg_ref) = ([0.0f32; 16], [0.0f32; 16], [0.0f32; 16]);
             light_cache_general(links, flux, B, C, &mut luma_ref, &mut co_ref, &mut cg_ref);
             let scale = luma_ref.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
-            for (got, want) in luma.iter().zip(&luma_ref).chain(co.iter().zip(&co_ref)).chain(cg.iter().zip(&cg_ref)) {
+            for (got, want) in luma
+                .iter()
+                .zip(&luma_ref)
+                .chain(co.iter().zip(&co_ref))
+                .chain(cg.iter().zip(&cg_ref))
+            {
                 // Sloan's 7-digit constants and f32 sums of 64 terms.
-                assert!((got - want).abs() <= 1e-5 * scale, "{B}:{C} {got} vs {want}");
+                assert!(
+                    (got - want).abs() <= 1e-5 * scale,
+                    "{B}:{C} {got} vs {want}"
+                );
             }
         }
         compare::<2, 2>(&links, &flux);
@@ -237,7 +245,10 @@ mod tests {
                 // Normal numbers convert exactly; subnormals (below 2^-14)
                 // within 2^-14.
                 let tolerance = if bits < 0x0400 { 2f32.powi(-14) } else { 0.0 };
-                assert!((exact - fast).abs() <= tolerance, "{bits:#x}: {exact} vs {fast}");
+                assert!(
+                    (exact - fast).abs() <= tolerance,
+                    "{bits:#x}: {exact} vs {fast}"
+                );
             }
         }
     }

@@ -61,6 +61,9 @@
 //! - Sponza's 4666 lightmap charts do not fit a 128 x 128 atlas, so its
 //!   cache atlas is as coarse as gives about `lightmap_caches` texels.
 
+// SH loops index several per-band arrays by band number on purpose.
+#![allow(clippy::needless_range_loop)]
+
 mod bake;
 pub mod caches;
 pub mod hierarchy;

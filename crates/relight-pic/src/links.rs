@@ -257,6 +257,7 @@ impl Senders<'_> {
 
     /// SH-projected link to `node` (Appendix A), each sample projected as
     /// the small cone of its disc rather than a single direction.
+    #[allow(clippy::too_many_arguments)]
     pub fn projected_link(
         &self,
         cache: u64,

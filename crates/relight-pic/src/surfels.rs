@@ -71,7 +71,7 @@ pub fn place_surfels(scene: &Scene, count: usize, relaxation_steps: u32) -> Surf
     let mut halton_index = 1u64;
     for triangle in 0..mesh.triangles.len() {
         let area = mesh.area(triangle) as f64;
-        if !(area > 0.0) {
+        if area.is_nan() || area <= 0.0 {
             continue;
         }
         carried += area;
