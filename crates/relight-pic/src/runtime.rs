@@ -45,6 +45,10 @@ pub struct Pic {
     /// (YCoCg), fixed because emission is.
     surfel_area_light: Vec<Vec3>,
     surfel_direct: Vec<Rgb>,
+    /// Last frame's indirect irradiance at each surfel (YCoCg), reused.
+    surfel_indirect: Vec<Vec3>,
+    /// A_l of the clamped cosine lobe, per band.
+    cosine_factors: [f32; sh::MAX_BANDS],
     /// Flux per node, YCoCg, in units of one surfel's area.
     flux: Vec<Vec3>,
     /// Per cache: Y (bands^2), Co, Cg (chroma^2 each).
@@ -119,6 +123,8 @@ impl Pic {
             surfel_basis,
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
+            surfel_indirect: vec![Vec3::ZERO; surfels.len()],
+            cosine_factors: std::array::from_fn(sh::cosine_lobe_factor),
             flux: vec![Vec3::ZERO; bake.hierarchy.node_count()],
             cache_sh: vec![0.0; bake.cache_count() * stride],
             stride,
@@ -239,22 +245,22 @@ impl Pic {
         }
         self.pull();
         self.light_caches();
-        self.surfel_area_light = self.feedback_irradiance();
+        let mut area_light = std::mem::take(&mut self.surfel_area_light);
+        self.feedback_irradiance(&mut area_light);
+        self.surfel_area_light = area_light;
         self.cache_sh.fill(0.0);
     }
 
-    /// Irradiance (YCoCg) at every surfel from the current caches.
-    fn feedback_irradiance(&self) -> Vec<Vec3> {
+    /// Irradiance (YCoCg) at every surfel from the current caches, into
+    /// `out` (one per surfel).
+    fn feedback_irradiance(&self, out: &mut [Vec3]) {
         let coefficients = self.settings.bands * self.settings.bands;
-        (0..self.bake.surfels.len())
-            .into_par_iter()
-            .map(|index| {
-                self.irradiance_from_taps(
-                    &self.surfel_taps[index],
-                    &self.surfel_basis[index * coefficients..(index + 1) * coefficients],
-                )
-            })
-            .collect()
+        out.par_iter_mut().enumerate().for_each(|(index, value)| {
+            *value = self.irradiance_from_taps(
+                &self.surfel_taps[index],
+                &self.surfel_basis[index * coefficients..(index + 1) * coefficients],
+            );
+        });
     }
 
     fn direct_light(&mut self, frame: &Frame) {
@@ -273,7 +279,11 @@ impl Pic {
 
     /// Leaf flux: albedo x (direct + area lights + last indirect).
     fn light_surfels(&mut self, feedback: bool) {
-        let indirect = feedback.then(|| self.feedback_irradiance());
+        let mut indirect_buffer = std::mem::take(&mut self.surfel_indirect);
+        if feedback {
+            self.feedback_irradiance(&mut indirect_buffer);
+        }
+        let indirect = feedback.then_some(&indirect_buffer);
         let surfels = &self.bake.surfels;
         let direct = &self.surfel_direct;
         let area = &self.surfel_area_light;
@@ -287,6 +297,7 @@ impl Pic {
                 }
                 *flux = rgb_to_ycocg(surfels.albedos[index] * irradiance);
             });
+        self.surfel_indirect = indirect_buffer;
     }
 
     /// Flux up the tree: disjoint subtrees in parallel, then the nodes
@@ -365,7 +376,7 @@ impl Pic {
     /// Diffuse irradiance (RGB) at a point of the static scene.
     fn surface_irradiance(&self, triangle: u32, barycentric: Vec2, normal: Vec3) -> Rgb {
         let taps = self.lightmap_taps(triangle, barycentric);
-        let basis = self.weighted_basis(normal, &std::array::from_fn(sh::cosine_lobe_factor));
+        let basis = self.weighted_basis(normal, &self.cosine_factors);
         ycocg_to_rgb(self.irradiance_from_taps(&taps, &basis)).max(Rgb::ZERO)
     }
 
@@ -518,7 +529,7 @@ impl Technique for Pic {
 
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
         let taps = self.grid_taps(position);
-        let basis = self.weighted_basis(normal, &std::array::from_fn(sh::cosine_lobe_factor));
+        let basis = self.weighted_basis(normal, &self.cosine_factors);
         ycocg_to_rgb(self.irradiance_from_taps(&taps, &basis)).max(Rgb::ZERO)
     }
 
