@@ -4,7 +4,8 @@
 //!
 //! Run: `cargo run --release -p relight-pic --example pic_study -- SCENE.toml
 //! RESOLUTION REFERENCE_SAMPLES "preset=moderate" "preset=high" ...`
-//! (RESOLUTION 0 = the automatic lightmap size).
+//! (RESOLUTION 0 = the automatic lightmap size). `RELIGHT_STUDY_WORST=N`
+//! adds the N worst receivers and the error at relocated receivers.
 
 use relight_core::{luminance, Rgb};
 use relight_pic::{PicKind, BAKE_PARAMETERS};
@@ -17,34 +18,29 @@ fn detail(context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb
         "    mean luminance ratio {:.3}",
         sum(values) / sum(reference).max(1e-30)
     );
-    if std::env::var_os("PIC_WORST").is_some() {
-        let mut order: Vec<usize> = (0..values.len()).collect();
-        let error = |i: usize| (luminance(values[i]) - luminance(reference[i])).powi(2);
-        order.sort_by(|&a, &b| error(b).total_cmp(&error(a)));
-        let receivers = &context.atlas.receivers;
-        let dark: Vec<usize> = (0..values.len())
-            .filter(|&i| {
-                luminance(reference[i]) < 1e-4 * sum(reference) as f32 / values.len() as f32
-            })
-            .collect();
-        let lit: Vec<usize> = (0..values.len()).filter(|i| !dark.contains(i)).collect();
-        let pick = |list: &[usize], v: &[Rgb]| list.iter().map(|&i| v[i]).collect::<Vec<_>>();
-        println!(
-            "    {} receivers dark in the reference; relRMSE over the rest {:.2} %",
-            dark.len(),
-            relight_render::metrics::error_norms(&pick(&lit, values), &pick(&lit, reference))
-                .relative_rmse
-                * 100.0
-        );
-        for &i in order.iter().take(12) {
-            println!(
-                "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
-                i,
-                receivers.positions[i],
-                receivers.normals[i],
-                luminance(values[i]),
-                luminance(reference[i])
-            );
+    // PIC_NEAR="x,y,z,radius" lists the receivers within radius of a point.
+    if let Ok(near) = std::env::var("PIC_NEAR") {
+        let numbers: Vec<f32> = near.split(',').filter_map(|v| v.parse().ok()).collect();
+        if let [x, y, z, radius] = numbers[..] {
+            let centre = glam::Vec3::new(x, y, z);
+            let receivers = &context.atlas.receivers;
+            let mut list: Vec<usize> = (0..values.len())
+                .filter(|&i| receivers.positions[i].distance(centre) < radius)
+                .collect();
+            list.sort_by(|&a, &b| {
+                let (pa, pb) = (receivers.positions[a], receivers.positions[b]);
+                (pa.y, pa.x, pa.z).partial_cmp(&(pb.y, pb.x, pb.z)).unwrap()
+            });
+            for i in list {
+                println!(
+                    "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
+                    i,
+                    receivers.positions[i],
+                    receivers.normals[i],
+                    luminance(values[i]),
+                    luminance(reference[i])
+                );
+            }
         }
     }
 }

@@ -25,8 +25,12 @@ pub fn cache_atlas(
     let mut metres = context.atlas.metres_per_texel.max(1e-4) * (own as f32 / target as f32).sqrt();
     let mut best: Option<(Atlas, f32)> = None;
     for _ in 0..6 {
-        let atlas = Atlas::build(&context.scene, TexelDensity::MetresPerTexel(metres))
-            .map_err(|error| TechniqueError::Other(error.to_string()))?;
+        let atlas = relight_technique::build_atlas(
+            &context.scene,
+            &context.bvh,
+            TexelDensity::MetresPerTexel(metres),
+        )
+        .map_err(|error| TechniqueError::Other(error.to_string()))?;
         let count = atlas.receivers.len();
         let ratio = count as f32 / target as f32;
         let better = best.as_ref().is_none_or(|(previous, _)| {

@@ -26,8 +26,19 @@ pub fn study_context(scene_path: &str, resolution: u32) -> Arc<SceneContext> {
 /// the temporary folder under the scene fingerprint, lightmap and sample
 /// count.
 pub fn cached_reference_lightmap(context: &SceneContext, samples: u32) -> (Vec<Rgb>, f64) {
+    // Receiver positions enter the key, so a change in where receivers
+    // stand never reuses a stale reference.
+    let positions = context
+        .atlas
+        .receivers
+        .positions
+        .iter()
+        .flat_map(|p| p.to_array())
+        .fold(0xcbf2_9ce4_8422_2325u64, |hash, value| {
+            (hash ^ value.to_bits() as u64).wrapping_mul(0x0100_0000_01b3)
+        });
     let key = format!(
-        "{}-{}-{}-{}",
+        "{}-{}-{}-{positions:016x}-{}",
         context.fingerprint(),
         context.atlas.width,
         context.atlas.receivers.len(),
@@ -178,10 +189,66 @@ pub fn run_study(
             norms.mean_relative_error * 100.0,
             bake.len() as f64 / 1048576.0
         );
+        if let Some(count) = std::env::var("RELIGHT_STUDY_WORST")
+            .ok()
+            .and_then(|count| count.parse().ok())
+        {
+            report_worst(&context, values, &reference, count);
+        }
         detail(&context, bake, values, &reference);
         if first.is_none() {
             first = Some(values.to_vec());
         }
+    }
+}
+
+/// Prints the `count` receivers with the largest squared luminance error,
+/// and the error without the receivers the reference sees as dark
+/// (enclosed texels), which tells a technique's error from disagreement
+/// over texels nobody sees. Studies print it when `RELIGHT_STUDY_WORST` is
+/// set to a count.
+pub fn report_worst(context: &SceneContext, values: &[Rgb], reference: &[Rgb], count: usize) {
+    use relight_core::luminance;
+    let mean =
+        reference.iter().map(|v| luminance(*v) as f64).sum::<f64>() / reference.len().max(1) as f64;
+    let (lit, dark): (Vec<usize>, Vec<usize>) =
+        (0..values.len()).partition(|&i| luminance(reference[i]) as f64 >= 1e-4 * mean);
+    let pick = |list: &[usize], from: &[Rgb]| list.iter().map(|&i| from[i]).collect::<Vec<_>>();
+    println!(
+        "    {} receivers dark in the reference; relRMSE over the rest {:.2} %",
+        dark.len(),
+        crate::metrics::error_norms(&pick(&lit, values), &pick(&lit, reference)).relative_rmse
+            * 100.0
+    );
+    // Receivers that relocation moved off the texel centre (see
+    // `relight_technique::relocate_receivers`), against the rest.
+    if let Ok(raw) = relight_scene::atlas::Atlas::build(&context.scene, context.settings.lightmap) {
+        let (moved, kept): (Vec<usize>, Vec<usize>) = (0..values.len())
+            .partition(|&i| raw.receivers.positions[i] != context.atlas.receivers.positions[i]);
+        let error_of = |list: &[usize]| {
+            crate::metrics::error_norms(&pick(list, values), &pick(list, reference)).relative_rmse
+                * 100.0
+        };
+        println!(
+            "    {} receivers relocated: relRMSE {:.2} % there, {:.2} % over the rest",
+            moved.len(),
+            error_of(&moved),
+            error_of(&kept)
+        );
+    }
+    let error = |i: usize| (luminance(values[i]) - luminance(reference[i])).powi(2);
+    let mut order: Vec<usize> = (0..values.len()).collect();
+    order.sort_by(|&a, &b| error(b).total_cmp(&error(a)));
+    let receivers = &context.atlas.receivers;
+    for &i in order.iter().take(count) {
+        println!(
+            "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
+            i,
+            receivers.positions[i],
+            receivers.normals[i],
+            luminance(values[i]),
+            luminance(reference[i])
+        );
     }
 }
 

@@ -256,8 +256,19 @@ impl Atlas {
             let triangle = (key & 0xFFFF_FFFF) as usize;
             let x = texel as u32 % width;
             let y = texel as u32 / width;
-            let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-            let (_, barycentric) = closest_barycentric(&triangle_uvs[triangle], centre);
+            let texel_min = Vec2::new(x as f32, y as f32);
+            let centre = texel_min + Vec2::splat(0.5);
+            let uvs = &triangle_uvs[triangle];
+            let (distance, mut barycentric) = closest_barycentric(uvs, centre);
+            if distance > 0.0 {
+                // A border texel: its centre lies off the chart, and the
+                // clamped point sits on the chart's edge, where the surface
+                // usually meets another one. The middle of the covered part
+                // stands for what the texel shows.
+                if let Some(middle) = covered_centroid(uvs, texel_min) {
+                    barycentric = closest_barycentric(uvs, middle).1;
+                }
+            }
             let [a, b, c] = scene.mesh.vertices(triangle);
             let position =
                 a * (1.0 - barycentric.x - barycentric.y) + b * barycentric.x + c * barycentric.y;
@@ -749,6 +760,53 @@ pub fn closest_barycentric(uvs: &[Vec2; 3], point: Vec2) -> (f32, Vec2) {
     (0.0, Vec2::new(v, w))
 }
 
+/// Centroid of the part of the unit texel at `texel_min` that the 2D
+/// triangle covers (Sutherland-Hodgman clipping), or None where the overlap
+/// has no area.
+fn covered_centroid(uvs: &[Vec2; 3], texel_min: Vec2) -> Option<Vec2> {
+    let mut polygon = vec![
+        texel_min,
+        texel_min + Vec2::X,
+        texel_min + Vec2::ONE,
+        texel_min + Vec2::Y,
+    ];
+    let orientation = (uvs[1] - uvs[0]).perp_dot(uvs[2] - uvs[0]).signum();
+    if orientation == 0.0 {
+        return None;
+    }
+    for edge in 0..3 {
+        let (from, to) = (uvs[edge], uvs[(edge + 1) % 3]);
+        let inside = |p: Vec2| (to - from).perp_dot(p - from) * orientation >= 0.0;
+        let mut clipped = Vec::with_capacity(polygon.len() + 1);
+        for index in 0..polygon.len() {
+            let current = polygon[index];
+            let next = polygon[(index + 1) % polygon.len()];
+            let (current_in, next_in) = (inside(current), inside(next));
+            if current_in {
+                clipped.push(current);
+            }
+            if current_in != next_in {
+                let a = (to - from).perp_dot(current - from);
+                let b = (to - from).perp_dot(next - from);
+                clipped.push(current + (next - current) * (a / (a - b)));
+            }
+        }
+        polygon = clipped;
+        if polygon.len() < 3 {
+            return None;
+        }
+    }
+    let mut area = 0.0;
+    let mut centroid = Vec2::ZERO;
+    for index in 0..polygon.len() {
+        let (p, q) = (polygon[index], polygon[(index + 1) % polygon.len()]);
+        let cross = p.perp_dot(q);
+        area += cross;
+        centroid += (p + q) * cross;
+    }
+    (area.abs() > 1e-12).then(|| centroid / (3.0 * area))
+}
+
 /// Separating-axis test of a 2D triangle against an axis-aligned box.
 fn triangle_overlaps_box(uvs: &[Vec2; 3], box_min: Vec2, box_max: Vec2) -> bool {
     let lo = uvs[0].min(uvs[1]).min(uvs[2]);
@@ -786,6 +844,44 @@ fn triangle_overlaps_box(uvs: &[Vec2; 3], box_min: Vec2, box_max: Vec2) -> bool 
 mod tests {
     use super::*;
     use crate::{Material, Mesh};
+
+    /// The covered part of a texel cut by a triangle edge: a right triangle
+    /// over the lower-left half has its centroid at a third of the way in.
+    #[test]
+    fn covered_centroid_of_a_cut_texel() {
+        let uvs = [
+            Vec2::new(0.0, 0.0),
+            Vec2::new(1.0, 0.0),
+            Vec2::new(0.0, 1.0),
+        ];
+        let centroid = covered_centroid(&uvs, Vec2::ZERO).unwrap();
+        assert!(
+            centroid.distance(Vec2::splat(1.0 / 3.0)) < 1e-5,
+            "{centroid}"
+        );
+        // Clockwise corners give the same answer.
+        let reversed = [uvs[0], uvs[2], uvs[1]];
+        assert!(
+            covered_centroid(&reversed, Vec2::ZERO)
+                .unwrap()
+                .distance(centroid)
+                < 1e-5
+        );
+        // A texel the triangle fully covers keeps its centre; one it misses
+        // has none.
+        let big = [
+            Vec2::new(-5.0, -5.0),
+            Vec2::new(5.0, -5.0),
+            Vec2::new(0.0, 5.0),
+        ];
+        assert!(
+            covered_centroid(&big, Vec2::ZERO)
+                .unwrap()
+                .distance(Vec2::splat(0.5))
+                < 1e-5
+        );
+        assert!(covered_centroid(&uvs, Vec2::new(3.0, 3.0)).is_none());
+    }
 
     fn quad_scene(size: f32) -> Scene {
         // Two unit quads: one in the floor plane, one standing, sharing an edge.

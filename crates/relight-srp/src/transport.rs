@@ -45,13 +45,23 @@ impl TransportScratch {
     }
 }
 
-/// A point on the receiver's texel: the texel's centre, or a uniformly
-/// jittered point of its footprint clamped onto the receiver's triangle (so
-/// that origins never leave the surface the texel stands for).
-fn texel_point(context: &SceneContext, receiver: usize, jitter: Option<Vec2>) -> Vec3 {
+/// A point on the receiver's texel: the receiver's position, or a
+/// uniformly jittered point of its footprint clamped onto the receiver's
+/// triangle (so that origins never leave the surface the texel stands for)
+/// and seen from the receiver's position along the surface (so that they
+/// stay on the visible part of the texel, which the receiver stands for:
+/// a point behind a wall that cuts the texel would average darkness into
+/// it).
+fn texel_point(
+    context: &SceneContext,
+    receiver: usize,
+    jitter: Option<Vec2>,
+    epsilon: f32,
+) -> Vec3 {
     let receivers = &context.atlas.receivers;
+    let centre = receivers.positions[receiver];
     let Some(jitter) = jitter else {
-        return receivers.positions[receiver];
+        return centre;
     };
     let texel = receivers.texels[receiver];
     let triangle = receivers.triangles[receiver];
@@ -59,7 +69,18 @@ fn texel_point(context: &SceneContext, receiver: usize, jitter: Option<Vec2>) ->
     let uvs = &context.atlas.triangle_uvs[triangle as usize];
     let (_, barycentric) = relight_scene::atlas::closest_barycentric(uvs, uv);
     let [a, b, c] = context.scene.mesh.vertices(triangle as usize);
-    a + (b - a) * barycentric.x + (c - a) * barycentric.y
+    let point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
+    let lift = receivers.normals[receiver] * epsilon;
+    let along = Ray {
+        origin: centre + lift,
+        direction: point - centre,
+        t_max: 1.0,
+    };
+    if context.bvh.occluded(&along) {
+        centre
+    } else {
+        point
+    }
 }
 
 /// The transport row of one receiver: `row[k * C + j]` = alpha for the k-th
@@ -104,7 +125,7 @@ pub fn transport_row(
             stratified_square(sample, settings.samples, offset, &mut rng),
         );
         let jitter = settings.texel_jitter.then(|| rng.next_vec2());
-        let origin = texel_point(context, receiver, jitter) + normal * epsilon;
+        let origin = texel_point(context, receiver, jitter, epsilon) + normal * epsilon;
         let primary = Ray {
             origin,
             direction,

@@ -316,11 +316,14 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
 /// The bounds at order 7 with all bounces: lightmap at most 10 %,
 /// image at most 15 %. The corridor needs less compression than the
 /// default 32 vectors over 1024 receivers (its transport spreads over more
-/// probes per cluster; at the default it measured 14.5 %).
+/// probes per cluster; at the default it measured 14.5 %) and more probes:
+/// since receivers stand on the visible part of their texels, the 487
+/// texels at its wall junctions count (19 % error there with 48 probes),
+/// and 48, 64, 96 probes measured 10.9, 10.6, 9.7 % against 2048 paths.
 #[test]
 fn accuracy_within_the_bounds_at_order_seven() {
     let corridor = [
-        ("probe_count", "48"),
+        ("probe_count", "96"),
         ("cluster_size", "256"),
         ("pca_vectors", "64"),
     ];

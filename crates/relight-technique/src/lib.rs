@@ -25,7 +25,7 @@ pub use bakefile::{
 pub use builtin::{
     reference_receiver_irradiance, DirectKind, ReferenceKind, ReferenceLightmap, ReferenceParams,
 };
-pub use context::{ContextSettings, SceneContext};
+pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
