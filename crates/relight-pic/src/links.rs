@@ -170,14 +170,19 @@ impl Senders<'_> {
             return finished;
         }
         let root = self.hierarchy.root();
-        let estimate = self.estimate(
-            origin,
-            normal,
-            root,
-            settings.node_samples,
-            &mut rng,
-            |_, _, _| {},
-        );
+        // A cache that sees little of the scene (a box's side facing a
+        // corner) can miss every visible leaf among a few samples; dropping
+        // the root then leaves it with no light at all, so sample it more
+        // densely until something is seen or every leaf was tried.
+        let leaves = self.hierarchy.leaves[root as usize];
+        let mut samples = settings.node_samples.max(1);
+        let estimate = loop {
+            let estimate = self.estimate(origin, normal, root, samples, &mut rng, |_, _, _| {});
+            if estimate.solid_angle > 0.0 || samples >= leaves || samples >= 4096 {
+                break estimate;
+            }
+            samples *= 4;
+        };
         if estimate.solid_angle > 0.0 {
             open.push((
                 Self::priority(&estimate, settings.leak_refinement).to_bits(),
@@ -193,7 +198,7 @@ impl Senders<'_> {
                 continue;
             }
             for child in self.hierarchy.children_of(node) {
-                let estimate = self.estimate(
+                let mut estimate = self.estimate(
                     origin,
                     normal,
                     child,
@@ -201,6 +206,20 @@ impl Senders<'_> {
                     &mut rng,
                     |_, _, _| {},
                 );
+                // One denser look before a large child is dropped as
+                // unseen: its parent was seen, so some of it may be.
+                if estimate.solid_angle <= 0.0
+                    && self.hierarchy.leaves[child as usize] > settings.node_samples
+                {
+                    estimate = self.estimate(
+                        origin,
+                        normal,
+                        child,
+                        settings.node_samples * 4,
+                        &mut rng,
+                        |_, _, _| {},
+                    );
+                }
                 if estimate.solid_angle > 0.0 {
                     let priority = Self::priority(&estimate, settings.leak_refinement);
                     open.push((priority.to_bits(), Reverse(child)));

@@ -376,21 +376,20 @@ fn chroma_grid_and_glossy_lookups() {
     ));
 }
 
-/// All-bounce accuracy against the path tracer on the shipped scenes, at
-/// the moderate preset with a lightmap cache per scene texel. Measured
-/// while building (4096 paths per receiver, 512 per pixel): cornell-box
-/// 15.0 / 11.6 %, cornell-box-point 14.0 / 16.1 %, corridor 13.9 / 17.6 %
-/// (lightmap / image). About 4 points of the lightmap figure are
-/// receivers whose texel centre sits on another surface's plane, which the
-/// path tracer sees as enclosed (0) and PIC's caches, moved out of the
-/// geometry, do not. The issue asks for 10 / 15 %: not met; the bounds
-/// here hold the measured level.
+/// All-bounce accuracy against the path tracer on the shipped scenes at
+/// the high preset, the issue's bounds: lightmap relRMSE at most 10 %,
+/// indirect-only image at most 15 %. The errors include the reference's own
+/// noise (printed), which only makes the check stricter. Measured with
+/// `relight compare SCENE --techniques pic --set pic.preset=high
+/// --reference-samples 2048 --reference-spp 256`: cornell-box 7.3 / 8.0 %,
+/// cornell-box-point 5.9 / 13.5 %, corridor 9.6 / 14.8 % (lightmap /
+/// image).
 #[test]
 fn accuracy_against_the_path_tracer() {
     for scene in ["cornell-box", "cornell-box-point", "corridor"] {
         let context = context_with(scene, true);
         let lights = context.scene.lights.clone();
-        let technique = pic(&context, &[("lightmap_caches", "0")]);
+        let technique = pic(&context, &[("preset", "high")]);
         let errors = indirect_errors(
             &context,
             &lights,
@@ -408,10 +407,10 @@ fn accuracy_against_the_path_tracer() {
         );
         assert!(errors.lightmap_noise < 0.05 && errors.image_noise < 0.1);
         assert!(
-            errors.lightmap < 0.17,
+            errors.lightmap <= 0.10,
             "{scene} lightmap {}",
             errors.lightmap
         );
-        assert!(errors.image < 0.20, "{scene} image {}", errors.image);
+        assert!(errors.image <= 0.15, "{scene} image {}", errors.image);
     }
 }
