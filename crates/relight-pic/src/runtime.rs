@@ -198,24 +198,28 @@ impl Pic {
     fn irradiance_from_taps(&self, taps: &[(u32, f32)], basis: &[f32]) -> Vec3 {
         let luma = self.settings.bands * self.settings.bands;
         let chroma = self.settings.chroma_bands * self.settings.chroma_bands;
-        let mut sum = Vec3::ZERO;
+        // Blend the taps' rows first, then one dot product per channel:
+        // the blend has no chain between coefficients (it vectorises and
+        // its loads overlap), where a dot product per tap chained every
+        // add through one accumulator.
+        let mut blended = [0.0f32; 3 * sh::MAX_BANDS * sh::MAX_BANDS];
+        let blended = &mut blended[..self.stride];
         for &(cache, weight) in taps {
             if cache == NO_CACHE {
                 continue;
             }
-            let row =
-                &self.cache_sh[cache as usize * self.stride..(cache as usize + 1) * self.stride];
-            let mut value = Vec3::ZERO;
-            for index in 0..luma {
-                value.x += row[index] * basis[index];
+            let start = cache as usize * self.stride;
+            let row = &self.cache_sh[start..start + self.stride];
+            for (sum, value) in blended.iter_mut().zip(row) {
+                *sum += weight * value;
             }
-            for index in 0..chroma {
-                value.y += row[luma + index] * basis[index];
-                value.z += row[luma + chroma + index] * basis[index];
-            }
-            sum += value * weight;
         }
-        sum
+        let (luma_row, chroma_rows) = blended.split_at(luma);
+        Vec3::new(
+            dot(luma_row, &basis[..luma]),
+            dot(&chroma_rows[..chroma], &basis[..chroma]),
+            dot(&chroma_rows[chroma..2 * chroma], &basis[..chroma]),
+        )
     }
 
     /// Band-weighted basis for a lookup: `factors[l] * Y_lm(direction)`.
@@ -429,6 +433,24 @@ fn kernels_available() -> bool {
 }
 
 /// The lane kernel compiled for AVX2 and FMA, one instance per band pair.
+/// Dot product with four partial sums, so the adds do not wait on each
+/// other.
+#[inline(always)]
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut partial = [0.0f32; 4];
+    let chunks = a.len() / 4 * 4;
+    for (a, b) in a[..chunks].chunks_exact(4).zip(b[..chunks].chunks_exact(4)) {
+        for lane in 0..4 {
+            partial[lane] += a[lane] * b[lane];
+        }
+    }
+    let mut total = (partial[0] + partial[1]) + (partial[2] + partial[3]);
+    for (a, b) in a[chunks..].iter().zip(&b[chunks..]) {
+        total += a * b;
+    }
+    total
+}
+
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
 #[allow(clippy::too_many_arguments)]
 unsafe fn light_cache_avx2(
