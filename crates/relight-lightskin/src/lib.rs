@@ -979,8 +979,7 @@ impl Technique for LightSkin {
         let atlas = &self.context.atlas;
         let power = atlas.sample(&self.glossy_power_map, point.triangle, point.barycentric);
         let light = atlas.sample(&self.glossy_position_map, point.triangle, point.barycentric);
-        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
-            .normalize_or_zero();
+        let reflected = (-toward_viewer).reflect(point.normal).normalize_or_zero();
         let lobe = self.params.specular * (exponent + 1.0) / (2.0 * PI);
         Some(
             phong_glossy(

@@ -152,6 +152,28 @@ impl Senders<'_> {
         estimate.solid_angle * (1.0 + leak_refinement * hidden)
     }
 
+    /// A node's estimate from `samples` leaves, retried with four times as
+    /// many while nothing is seen, the node has more leaves than were
+    /// tried, and fewer than `most` were.
+    fn estimate_until_seen(
+        &self,
+        origin: Vec3,
+        normal: Vec3,
+        node: u32,
+        mut samples: u32,
+        most: u32,
+        rng: &mut relight_core::Pcg32,
+    ) -> NodeEstimate {
+        let leaves = self.hierarchy.leaves[node as usize];
+        loop {
+            let estimate = self.estimate(origin, normal, node, samples, rng, |_, _, _| {});
+            if estimate.solid_angle > 0.0 || samples >= leaves || samples >= most {
+                return estimate;
+            }
+            samples *= 4;
+        }
+    }
+
     /// The cut of at most `settings.links` visible nodes for the cache at
     /// `position` (hemispherical around `normal`, spherical when zero), in
     /// node order.
@@ -172,17 +194,10 @@ impl Senders<'_> {
         let root = self.hierarchy.root();
         // A cache that sees little of the scene (a box's side facing a
         // corner) can miss every visible leaf among a few samples; dropping
-        // the root then leaves it with no light at all, so sample it more
-        // densely until something is seen or every leaf was tried.
-        let leaves = self.hierarchy.leaves[root as usize];
-        let mut samples = settings.node_samples.max(1);
-        let estimate = loop {
-            let estimate = self.estimate(origin, normal, root, samples, &mut rng, |_, _, _| {});
-            if estimate.solid_angle > 0.0 || samples >= leaves || samples >= 4096 {
-                break estimate;
-            }
-            samples *= 4;
-        };
+        // the root then leaves it with no light at all, so it is sampled
+        // more densely until something is seen or every leaf was tried.
+        let estimate =
+            self.estimate_until_seen(origin, normal, root, settings.node_samples, 4096, &mut rng);
         if estimate.solid_angle > 0.0 {
             open.push((
                 Self::priority(&estimate, settings.leak_refinement).to_bits(),
@@ -198,28 +213,16 @@ impl Senders<'_> {
                 continue;
             }
             for child in self.hierarchy.children_of(node) {
-                let mut estimate = self.estimate(
+                // One denser look before a large child is dropped as
+                // unseen: its parent was seen, so some of it may be.
+                let estimate = self.estimate_until_seen(
                     origin,
                     normal,
                     child,
                     settings.node_samples,
+                    settings.node_samples * 4,
                     &mut rng,
-                    |_, _, _| {},
                 );
-                // One denser look before a large child is dropped as
-                // unseen: its parent was seen, so some of it may be.
-                if estimate.solid_angle <= 0.0
-                    && self.hierarchy.leaves[child as usize] > settings.node_samples
-                {
-                    estimate = self.estimate(
-                        origin,
-                        normal,
-                        child,
-                        settings.node_samples * 4,
-                        &mut rng,
-                        |_, _, _| {},
-                    );
-                }
                 if estimate.solid_angle > 0.0 {
                     let priority = Self::priority(&estimate, settings.leak_refinement);
                     open.push((priority.to_bits(), Reverse(child)));

@@ -564,8 +564,7 @@ impl Technique for Pic {
         if self.settings.specular <= 0.0 || exponent <= 1.0 {
             return None;
         }
-        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
-            .normalize_or_zero();
+        let reflected = (-toward_viewer).reflect(point.normal).normalize_or_zero();
         let taps = self.lightmap_taps(point.triangle, point.barycentric);
         let basis = self.weighted_basis(reflected, &sh::phong_band_factors(exponent));
         Some(

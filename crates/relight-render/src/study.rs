@@ -136,6 +136,17 @@ pub fn run_study(
         noise * 100.0
     );
     let lights = context.scene.lights.clone();
+    // With RELIGHT_STUDY_WORST: the count, and where receivers stood before
+    // relocation (built once for all parameter sets).
+    let worst: Option<(usize, Vec<glam::Vec3>)> = std::env::var("RELIGHT_STUDY_WORST")
+        .ok()
+        .and_then(|count| count.parse().ok())
+        .map(|count| {
+            let raw = relight_scene::atlas::Atlas::build(&context.scene, context.settings.lightmap)
+                .map(|atlas| atlas.receivers.positions)
+                .unwrap_or_default();
+            (count, raw)
+        });
     let mut first: Option<Vec<Rgb>> = None;
     // (bake parameters, bake bytes, seconds it took), one per distinct set.
     type Baked = (Vec<(String, String)>, Vec<u8>, f64);
@@ -189,11 +200,8 @@ pub fn run_study(
             norms.mean_relative_error * 100.0,
             bake.len() as f64 / 1048576.0
         );
-        if let Some(count) = std::env::var("RELIGHT_STUDY_WORST")
-            .ok()
-            .and_then(|count| count.parse().ok())
-        {
-            report_worst(&context, values, &reference, count);
+        if let Some((count, unmoved)) = &worst {
+            report_worst(&context, unmoved, values, &reference, *count);
         }
         detail(&context, bake, values, &reference);
         if first.is_none() {
@@ -205,9 +213,16 @@ pub fn run_study(
 /// Prints the `count` receivers with the largest squared luminance error,
 /// and the error without the receivers the reference sees as dark
 /// (enclosed texels), which tells a technique's error from disagreement
-/// over texels nobody sees. Studies print it when `RELIGHT_STUDY_WORST` is
-/// set to a count.
-pub fn report_worst(context: &SceneContext, values: &[Rgb], reference: &[Rgb], count: usize) {
+/// over texels nobody sees, and the error at receivers that relocation
+/// moved away from `unmoved` (their texel-centre positions) against the
+/// rest. Studies print it when `RELIGHT_STUDY_WORST` is set to a count.
+pub fn report_worst(
+    context: &SceneContext,
+    unmoved: &[glam::Vec3],
+    values: &[Rgb],
+    reference: &[Rgb],
+    count: usize,
+) {
     use relight_core::luminance;
     let mean =
         reference.iter().map(|v| luminance(*v) as f64).sum::<f64>() / reference.len().max(1) as f64;
@@ -220,11 +235,9 @@ pub fn report_worst(context: &SceneContext, values: &[Rgb], reference: &[Rgb], c
         crate::metrics::error_norms(&pick(&lit, values), &pick(&lit, reference)).relative_rmse
             * 100.0
     );
-    // Receivers that relocation moved off the texel centre (see
-    // `relight_technique::relocate_receivers`), against the rest.
-    if let Ok(raw) = relight_scene::atlas::Atlas::build(&context.scene, context.settings.lightmap) {
-        let (moved, kept): (Vec<usize>, Vec<usize>) = (0..values.len())
-            .partition(|&i| raw.receivers.positions[i] != context.atlas.receivers.positions[i]);
+    if unmoved.len() == values.len() {
+        let (moved, kept): (Vec<usize>, Vec<usize>) =
+            (0..values.len()).partition(|&i| unmoved[i] != context.atlas.receivers.positions[i]);
         let error_of = |list: &[usize]| {
             crate::metrics::error_norms(&pick(list, values), &pick(list, reference)).relative_rmse
                 * 100.0

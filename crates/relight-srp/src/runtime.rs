@@ -482,8 +482,7 @@ impl Technique for Srp {
         if self.settings.specular <= 0.0 || exponent <= 1.0 {
             return None;
         }
-        let reflected = (2.0 * toward_viewer.dot(point.normal) * point.normal - toward_viewer)
-            .normalize_or_zero();
+        let reflected = (-toward_viewer).reflect(point.normal).normalize_or_zero();
         Some(
             self.blend_probes(
                 point.position,
