@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use relight_core::colour::octahedral_encode;
 use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
 
-const PAYLOAD_VERSION: u32 = 1;
+const PAYLOAD_VERSION: u32 = 2;
 
 /// Links are padded to a multiple of this per cache (the kernel's lanes).
 pub const LINK_ALIGNMENT: usize = crate::kernels::LANES;
@@ -39,6 +39,9 @@ pub struct PicBake {
     pub hierarchy_builder: u32,
     /// Surfels dropped because geometry encloses them.
     pub enclosed_surfels: u32,
+    /// The cache bands (luma, chroma) the bake was made for: the run-time
+    /// default unless `bands`, `chroma_bands` or `preset` are given again.
+    pub cache_bands: [u32; 2],
 }
 
 impl PicBake {
@@ -183,6 +186,10 @@ impl PicBake {
             factor_scale,
             hierarchy_builder: (params.hierarchy == "kd") as u32,
             enclosed_surfels: enclosed as u32,
+            cache_bands: {
+                let runtime = params.runtime();
+                [runtime.bands as u32, runtime.chroma_bands as u32]
+            },
         };
         let half = |value: f32| half::f16::from_f32(value).to_bits();
         if form == LinkForm::Runtime {
@@ -270,6 +277,8 @@ impl PicBake {
         writer.f32(self.factor_scale);
         writer.u32(self.hierarchy_builder);
         writer.u32(self.enclosed_surfels);
+        writer.u32(self.cache_bands[0]);
+        writer.u32(self.cache_bands[1]);
         writer.finish()
     }
 
@@ -393,7 +402,13 @@ impl PicBake {
         let factor_scale = reader.finite()?;
         let hierarchy_builder = reader.u32()?;
         let enclosed_surfels = reader.u32()?;
+        let cache_bands = [reader.u32()?, reader.u32()?];
         reader.end()?;
+        let bands_ok = (2..=relight_core::sh::MAX_BANDS as u32).contains(&cache_bands[0])
+            && (2..=cache_bands[0]).contains(&cache_bands[1]);
+        if !bands_ok {
+            return Err(reader.corrupt("the cache bands are out of range"));
+        }
         let total = cache_count * links_per_cache;
         let runtime = projected_bands == 0;
         let links_ok = links_per_cache.is_multiple_of(LINK_ALIGNMENT)
@@ -427,6 +442,7 @@ impl PicBake {
             factor_scale,
             hierarchy_builder,
             enclosed_surfels,
+            cache_bands,
         })
     }
 }

@@ -28,111 +28,79 @@ fn half_to_f32(bits: u16) -> f32 {
     f32::from_bits(sign | magnitude)
 }
 
+/// Blocks of `LANES` links prepared at a time: their weighted bases and
+/// fluxes (19 KiB) stay in L1 while the accumulation reads them.
+const CHUNK_BLOCKS: usize = 32;
+
+/// One block's per-lane inputs to the accumulation: the SH basis already
+/// times the link's band weight, and the linked node's YCoCg flux.
+#[derive(Clone, Copy)]
+struct PreparedBlock {
+    weighted_basis: [[f32; LANES]; 16],
+    flux: [[f32; LANES]; 3],
+}
+
+/// A thread's working space for `light_cache`, reused across caches so
+/// that no cache clears 19 KiB it is about to overwrite.
+pub struct LinkScratch {
+    blocks: Box<[PreparedBlock; CHUNK_BLOCKS]>,
+}
+
+impl Default for LinkScratch {
+    fn default() -> Self {
+        LinkScratch {
+            blocks: Box::new(
+                [PreparedBlock {
+                    weighted_basis: [[0.0; LANES]; 16],
+                    flux: [[0.0; LANES]; 3],
+                }; CHUNK_BLOCKS],
+            ),
+        }
+    }
+}
+
 /// Sums one cache's links into SH: `luma` gets `BANDS^2` coefficients of Y,
 /// `co` and `cg` `CHROMA^2` of the chroma channels. `flux` is per node in
-/// YCoCg. Coefficients come out times the bake's factor scale. Every step
-/// is a loop over eight lanes of plain arithmetic so it vectorises.
+/// YCoCg. Coefficients come out times the bake's factor scale.
+///
+/// Two passes per chunk of links, each a loop over eight lanes of plain
+/// arithmetic so it vectorises: the first decodes links into weighted SH
+/// bases, the second sums basis times flux into at most eight accumulators
+/// at a time. Accumulating all 48 coefficients in one pass needs more
+/// vector registers than x86 has, and every spilled accumulator costs a
+/// load and a store per link block.
 #[inline(always)]
 pub fn light_cache<const BANDS: usize, const CHROMA: usize>(
     links: &LinkSlice,
     flux: &[Vec3],
+    scratch: &mut LinkScratch,
     luma: &mut [f32],
     co: &mut [f32],
     cg: &mut [f32],
 ) {
-    use std::f32::consts::PI;
     let luma_count = BANDS * BANDS;
     let chroma_count = CHROMA * CHROMA;
+    // One check per cache instead of one per link lets the gathers skip
+    // their bounds checks.
+    let largest_node = links.nodes.iter().copied().max().unwrap_or(0) as usize;
+    assert!(
+        links.nodes.is_empty() || largest_node < flux.len(),
+        "link to a missing node"
+    );
     let mut acc_y = [[0.0f32; LANES]; 16];
     let mut acc_co = [[0.0f32; LANES]; 16];
     let mut acc_cg = [[0.0f32; LANES]; 16];
-    for block in 0..links.nodes.len() / LANES {
-        let start = block * LANES;
-        let factors: &[u16; LANES] = links.factors[start..start + LANES].try_into().unwrap();
-        let cones: &[u16; LANES] = links.cones[start..start + LANES].try_into().unwrap();
-        let directions: &[[u16; 2]; LANES] =
-            links.directions[start..start + LANES].try_into().unwrap();
-        let nodes: &[u32; LANES] = links.nodes[start..start + LANES].try_into().unwrap();
-        let mut x = [0.0f32; LANES];
-        let mut y = [0.0f32; LANES];
-        let mut z = [0.0f32; LANES];
-        let mut weight = [[0.0f32; LANES]; 4];
-        for lane in 0..LANES {
-            // Octahedral decode.
-            let u = directions[lane][0] as f32 * (2.0 / 65535.0) - 1.0;
-            let v = directions[lane][1] as f32 * (2.0 / 65535.0) - 1.0;
-            let w = 1.0 - u.abs() - v.abs();
-            let shift = (-w).max(0.0);
-            let dx = u - shift.copysign(u);
-            let dy = v - shift.copysign(v);
-            let inverse = 1.0 / (dx * dx + dy * dy + w * w).sqrt();
-            x[lane] = dx * inverse;
-            y[lane] = dy * inverse;
-            z[lane] = w * inverse;
-            // Cone factors (Appendix C) times the link's factor.
-            let factor = half_to_f32(factors[lane]);
-            let c = 1.0 - half_to_f32(cones[lane]);
-            let c2 = c * c;
-            weight[0][lane] = factor * (2.0 * PI) * (1.0 - c);
-            weight[1][lane] = factor * PI * (1.0 - c2);
-            weight[2][lane] = factor * PI * c * (1.0 - c2);
-            weight[3][lane] = factor * (0.25 * PI) * (6.0 * c2 - 5.0 * c2 * c2 - 1.0);
+    let block_count = links.nodes.len() / LANES;
+    for chunk_start in (0..block_count).step_by(CHUNK_BLOCKS) {
+        let chunk = &mut scratch.blocks[..CHUNK_BLOCKS.min(block_count - chunk_start)];
+        for (offset, block) in chunk.iter_mut().enumerate() {
+            let start = (chunk_start + offset) * LANES;
+            prefetch_flux(links, flux, start + PREFETCH_LINKS_AHEAD);
+            prepare_block::<BANDS>(links, flux, start, block);
         }
-        let mut basis = [[0.0f32; LANES]; 16];
-        for lane in 0..LANES {
-            let (x, y, z) = (x[lane], y[lane], z[lane]);
-            let (x2, y2, z2) = (x * x, y * y, z * z);
-            basis[0][lane] = 0.282_094_8;
-            basis[1][lane] = 0.488_602_5 * y;
-            basis[2][lane] = 0.488_602_5 * z;
-            basis[3][lane] = 0.488_602_5 * x;
-            if BANDS > 2 {
-                basis[4][lane] = 1.092_548_4 * x * y;
-                basis[5][lane] = 1.092_548_4 * y * z;
-                basis[6][lane] = 0.315_391_57 * (3.0 * z2 - 1.0);
-                basis[7][lane] = 1.092_548_4 * x * z;
-                basis[8][lane] = 0.546_274_2 * (x2 - y2);
-            }
-            if BANDS > 3 {
-                basis[9][lane] = 0.590_043_6 * y * (3.0 * x2 - y2);
-                basis[10][lane] = 2.890_611_4 * x * y * z;
-                basis[11][lane] = 0.457_045_8 * y * (5.0 * z2 - 1.0);
-                basis[12][lane] = 0.373_176_34 * z * (5.0 * z2 - 3.0);
-                basis[13][lane] = 0.457_045_8 * x * (5.0 * z2 - 1.0);
-                basis[14][lane] = 1.445_305_7 * z * (x2 - y2);
-                basis[15][lane] = 0.590_043_6 * x * (x2 - 3.0 * y2);
-            }
-        }
-        let mut flux_y = [0.0f32; LANES];
-        let mut flux_co = [0.0f32; LANES];
-        let mut flux_cg = [0.0f32; LANES];
-        for lane in 0..LANES {
-            let node_flux = flux[nodes[lane] as usize];
-            flux_y[lane] = node_flux.x;
-            flux_co[lane] = node_flux.y;
-            flux_cg[lane] = node_flux.z;
-        }
-        for band in 0..BANDS {
-            let mut weighted_y = [0.0f32; LANES];
-            let mut weighted_co = [0.0f32; LANES];
-            let mut weighted_cg = [0.0f32; LANES];
-            for lane in 0..LANES {
-                weighted_y[lane] = weight[band][lane] * flux_y[lane];
-                weighted_co[lane] = weight[band][lane] * flux_co[lane];
-                weighted_cg[lane] = weight[band][lane] * flux_cg[lane];
-            }
-            for index in band * band..(band + 1) * (band + 1) {
-                for lane in 0..LANES {
-                    acc_y[index][lane] += basis[index][lane] * weighted_y[lane];
-                }
-                if band < CHROMA {
-                    for lane in 0..LANES {
-                        acc_co[index][lane] += basis[index][lane] * weighted_co[lane];
-                        acc_cg[index][lane] += basis[index][lane] * weighted_cg[lane];
-                    }
-                }
-            }
-        }
+        accumulate_channel(chunk, 0, luma_count, &mut acc_y);
+        accumulate_channel(chunk, 1, chroma_count, &mut acc_co);
+        accumulate_channel(chunk, 2, chroma_count, &mut acc_cg);
     }
     for index in 0..luma_count {
         luma[index] = acc_y[index].iter().sum();
@@ -141,6 +109,137 @@ pub fn light_cache<const BANDS: usize, const CHROMA: usize>(
         co[index] = acc_co[index].iter().sum();
         cg[index] = acc_cg[index].iter().sum();
     }
+}
+
+/// How far ahead the flux of linked nodes is fetched. The flux array of a
+/// large hierarchy (3 MB at 256k nodes) outgrows L2, and each link reads a
+/// scattered node, so without this the lanes wait on memory.
+const PREFETCH_LINKS_AHEAD: usize = 4 * LANES;
+
+/// Asks for the flux of the `LANES` links from `start` (if there are any)
+/// to be brought into L1.
+#[inline(always)]
+fn prefetch_flux(links: &LinkSlice, flux: &[Vec3], start: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(nodes) = links.nodes.get(start..start + LANES) {
+        for &node in nodes {
+            // A prefetch never faults, and `light_cache` checked the node.
+            let address = flux.as_ptr().wrapping_add(node as usize) as *const i8;
+            // SAFETY: SSE is part of x86_64; prefetching reads nothing.
+            unsafe { std::arch::x86_64::_mm_prefetch(address, std::arch::x86_64::_MM_HINT_T0) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (links, flux, start);
+}
+
+/// Decodes the `LANES` links from `start`: direction, cone factors of
+/// Appendix C times the link factor, closed-form SH and the node's flux.
+#[inline(always)]
+fn prepare_block<const BANDS: usize>(
+    links: &LinkSlice,
+    flux: &[Vec3],
+    start: usize,
+    block: &mut PreparedBlock,
+) {
+    use std::f32::consts::PI;
+    let factors: &[u16; LANES] = links.factors[start..start + LANES].try_into().unwrap();
+    let cones: &[u16; LANES] = links.cones[start..start + LANES].try_into().unwrap();
+    let directions: &[[u16; 2]; LANES] = links.directions[start..start + LANES].try_into().unwrap();
+    let nodes: &[u32; LANES] = links.nodes[start..start + LANES].try_into().unwrap();
+    let basis = &mut block.weighted_basis;
+    for lane in 0..LANES {
+        // Octahedral decode.
+        let u = directions[lane][0] as f32 * (2.0 / 65535.0) - 1.0;
+        let v = directions[lane][1] as f32 * (2.0 / 65535.0) - 1.0;
+        let w = 1.0 - u.abs() - v.abs();
+        let shift = (-w).max(0.0);
+        let dx = u - shift.copysign(u);
+        let dy = v - shift.copysign(v);
+        let inverse = 1.0 / (dx * dx + dy * dy + w * w).sqrt();
+        let (x, y, z) = (dx * inverse, dy * inverse, w * inverse);
+        // Cone factors (Appendix C) times the link's factor.
+        let factor = half_to_f32(factors[lane]);
+        let c = 1.0 - half_to_f32(cones[lane]);
+        let c2 = c * c;
+        let weight = [
+            factor * (2.0 * PI) * (1.0 - c),
+            factor * PI * (1.0 - c2),
+            factor * PI * c * (1.0 - c2),
+            factor * (0.25 * PI) * (6.0 * c2 - 5.0 * c2 * c2 - 1.0),
+        ];
+        let (x2, y2, z2) = (x * x, y * y, z * z);
+        basis[0][lane] = weight[0] * 0.282_094_8;
+        basis[1][lane] = weight[1] * 0.488_602_5 * y;
+        basis[2][lane] = weight[1] * 0.488_602_5 * z;
+        basis[3][lane] = weight[1] * 0.488_602_5 * x;
+        if BANDS > 2 {
+            basis[4][lane] = weight[2] * 1.092_548_4 * x * y;
+            basis[5][lane] = weight[2] * 1.092_548_4 * y * z;
+            basis[6][lane] = weight[2] * 0.315_391_57 * (3.0 * z2 - 1.0);
+            basis[7][lane] = weight[2] * 1.092_548_4 * x * z;
+            basis[8][lane] = weight[2] * 0.546_274_2 * (x2 - y2);
+        }
+        if BANDS > 3 {
+            basis[9][lane] = weight[3] * 0.590_043_6 * y * (3.0 * x2 - y2);
+            basis[10][lane] = weight[3] * 2.890_611_4 * x * y * z;
+            basis[11][lane] = weight[3] * 0.457_045_8 * y * (5.0 * z2 - 1.0);
+            basis[12][lane] = weight[3] * 0.373_176_34 * z * (5.0 * z2 - 3.0);
+            basis[13][lane] = weight[3] * 0.457_045_8 * x * (5.0 * z2 - 1.0);
+            basis[14][lane] = weight[3] * 1.445_305_7 * z * (x2 - y2);
+            basis[15][lane] = weight[3] * 0.590_043_6 * x * (x2 - 3.0 * y2);
+        }
+        // SAFETY: `light_cache` checked every node against `flux.len()`.
+        let node_flux = unsafe { *flux.get_unchecked(nodes[lane] as usize) };
+        block.flux[0][lane] = node_flux.x;
+        block.flux[1][lane] = node_flux.y;
+        block.flux[2][lane] = node_flux.z;
+    }
+}
+
+/// Adds the first `count` (1, 4, 9 or 16) coefficients of `channel`, in groups
+/// of at most eight accumulators so they stay in registers.
+#[inline(always)]
+fn accumulate_channel(
+    blocks: &[PreparedBlock],
+    channel: usize,
+    count: usize,
+    acc: &mut [[f32; LANES]; 16],
+) {
+    match count {
+        1 => accumulate::<1>(blocks, 0, channel, &mut acc[..1]),
+        4 => accumulate::<4>(blocks, 0, channel, &mut acc[..4]),
+        9 => {
+            accumulate::<5>(blocks, 0, channel, &mut acc[..5]);
+            accumulate::<4>(blocks, 5, channel, &mut acc[5..9]);
+        }
+        _ => {
+            accumulate::<8>(blocks, 0, channel, &mut acc[..8]);
+            accumulate::<8>(blocks, 8, channel, &mut acc[8..]);
+        }
+    }
+}
+
+/// Adds `COUNT` coefficients from `first` of every block's weighted basis
+/// times its flux in `channel` to `acc`, kept in registers for the chunk.
+#[inline(always)]
+fn accumulate<const COUNT: usize>(
+    blocks: &[PreparedBlock],
+    first: usize,
+    channel: usize,
+    acc: &mut [[f32; LANES]],
+) {
+    let mut local: [[f32; LANES]; COUNT] = acc[..COUNT].try_into().unwrap();
+    for block in blocks {
+        let flux = &block.flux[channel];
+        for (index, sum) in local.iter_mut().enumerate() {
+            let basis = &block.weighted_basis[first + index];
+            for lane in 0..LANES {
+                sum[lane] = basis[lane].mul_add(flux[lane], sum[lane]);
+            }
+        }
+    }
+    acc[..COUNT].copy_from_slice(&local);
 }
 
 /// The same sum for any band count up to 8, one link at a time (the slow
@@ -212,7 +311,14 @@ mod tests {
         };
         fn compare<const B: usize, const C: usize>(links: &LinkSlice, flux: &[Vec3]) {
             let (mut luma, mut co, mut cg) = ([0.0f32; 16], [0.0f32; 16], [0.0f32; 16]);
-            light_cache::<B, C>(links, flux, &mut luma, &mut co, &mut cg);
+            light_cache::<B, C>(
+                links,
+                flux,
+                &mut LinkScratch::default(),
+                &mut luma,
+                &mut co,
+                &mut cg,
+            );
             let (mut luma_ref, mut co_ref, mut cg_ref) = ([0.0f32; 16], [0.0f32; 16], [0.0f32; 16]);
             light_cache_general(links, flux, B, C, &mut luma_ref, &mut co_ref, &mut cg_ref);
             let scale = luma_ref.iter().map(|v| v.abs()).fold(0.0f32, f32::max);

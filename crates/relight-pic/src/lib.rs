@@ -310,9 +310,18 @@ impl TechniqueKind for PicKind {
         params: &[(String, String)],
         _progress: &dyn Progress,
     ) -> Result<Box<dyn Technique>, TechniqueError> {
+        let given = with_scene_section(&context.scene, "pic", params);
         let params = PicParams::from_scene(&context, params)?;
         let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "pic" })?;
         let bake = PicBake::decode(bake)?;
-        Ok(Box::new(Pic::new(context, bake, params.runtime())?))
+        let mut runtime = params.runtime();
+        // A bake made at `--preset high` runs with its four bands unless the
+        // run names its bands itself.
+        let named = |key: &str| given.iter().any(|(given_key, _)| given_key == key);
+        if !named("bands") && !named("chroma_bands") && !named("preset") {
+            runtime.bands = bake.cache_bands[0] as usize;
+            runtime.chroma_bands = bake.cache_bands[1] as usize;
+        }
+        Ok(Box::new(Pic::new(context, bake, runtime)?))
     }
 }

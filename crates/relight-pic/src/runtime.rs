@@ -1,7 +1,7 @@
 //! The PIC run time: surfel lighting, pull, cache lighting, shading.
 
 use crate::bake::PicBake;
-use crate::kernels::{self, LinkSlice};
+use crate::kernels::{self, LinkScratch, LinkSlice};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
@@ -258,11 +258,54 @@ impl Pic {
     /// Irradiance (YCoCg) at every surfel from the current caches, into
     /// `out` (one per surfel).
     fn feedback_irradiance(&self, out: &mut [Vec3]) {
+        // The strides of 2, 3 and 4 bands, in RGB mode and with chroma one
+        // or two bands below luma.
+        match self.stride {
+            12 => return self.feedback_irradiance_fixed::<12>(out),
+            17 => return self.feedback_irradiance_fixed::<17>(out),
+            24 => return self.feedback_irradiance_fixed::<24>(out),
+            27 => return self.feedback_irradiance_fixed::<27>(out),
+            34 => return self.feedback_irradiance_fixed::<34>(out),
+            48 => return self.feedback_irradiance_fixed::<48>(out),
+            _ => {}
+        }
         let coefficients = self.settings.bands * self.settings.bands;
         out.par_iter_mut().enumerate().for_each(|(index, value)| {
             *value = self.irradiance_from_taps(
                 &self.surfel_taps[index],
                 &self.surfel_basis[index * coefficients..(index + 1) * coefficients],
+            );
+        });
+    }
+
+    /// `feedback_irradiance` for a cache row of `STRIDE` floats: the four
+    /// taps blend in one pass with no branch and no cleared scratch (a
+    /// missing tap reads a zero row with weight 0), which runs once per
+    /// surfel per frame.
+    fn feedback_irradiance_fixed<const STRIDE: usize>(&self, out: &mut [Vec3]) {
+        let luma = self.settings.bands * self.settings.bands;
+        let chroma = self.settings.chroma_bands * self.settings.chroma_bands;
+        let zero = [0.0f32; STRIDE];
+        let row = |(cache, weight): (u32, f32)| -> (&[f32; STRIDE], f32) {
+            if cache == NO_CACHE {
+                return (&zero, 0.0);
+            }
+            let start = cache as usize * STRIDE;
+            (
+                self.cache_sh[start..start + STRIDE].try_into().unwrap(),
+                weight,
+            )
+        };
+        out.par_iter_mut().enumerate().for_each(|(index, value)| {
+            let [(r0, w0), (r1, w1), (r2, w2), (r3, w3)] = self.surfel_taps[index].map(row);
+            let blended: [f32; STRIDE] =
+                std::array::from_fn(|k| w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k]);
+            let basis = &self.surfel_basis[index * luma..(index + 1) * luma];
+            let (luma_row, chroma_rows) = blended.split_at(luma);
+            *value = Vec3::new(
+                dot(luma_row, basis),
+                dot(&chroma_rows[..chroma], &basis[..chroma]),
+                dot(&chroma_rows[chroma..2 * chroma], &basis[..chroma]),
             );
         });
     }
@@ -349,6 +392,7 @@ impl Pic {
             .par_chunks_mut(stride * 64)
             .enumerate()
             .for_each(|(chunk, rows)| {
+                let mut scratch = LinkScratch::default();
                 for (offset, row) in rows.chunks_exact_mut(stride).enumerate() {
                     let cache = chunk * 64 + offset;
                     let range = cache * links..(cache + 1) * links;
@@ -365,7 +409,18 @@ impl Pic {
                         };
                         if fast {
                             // SAFETY: `kernels_available` checked the CPU.
-                            unsafe { light_cache_avx2(&slice, flux, bands, chroma, luma, co, cg) };
+                            unsafe {
+                                light_cache_avx2(
+                                    &slice,
+                                    flux,
+                                    &mut scratch,
+                                    bands,
+                                    chroma,
+                                    luma,
+                                    co,
+                                    cg,
+                                )
+                            };
                         } else {
                             kernels::light_cache_general(&slice, flux, bands, chroma, luma, co, cg);
                         }
@@ -432,7 +487,6 @@ fn kernels_available() -> bool {
     }
 }
 
-/// The lane kernel compiled for AVX2 and FMA, one instance per band pair.
 /// Dot product with four partial sums, so the adds do not wait on each
 /// other.
 #[inline(always)]
@@ -451,11 +505,13 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     total
 }
 
+/// The lane kernel compiled for AVX2 and FMA, one instance per band pair.
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
 #[allow(clippy::too_many_arguments)]
 unsafe fn light_cache_avx2(
     links: &LinkSlice,
     flux: &[Vec3],
+    scratch: &mut LinkScratch,
     bands: usize,
     chroma: usize,
     luma: &mut [f32],
@@ -463,15 +519,15 @@ unsafe fn light_cache_avx2(
     cg: &mut [f32],
 ) {
     match (bands, chroma) {
-        (2, 2) => kernels::light_cache::<2, 2>(links, flux, luma, co, cg),
-        (2, _) => kernels::light_cache::<2, 1>(links, flux, luma, co, cg),
-        (3, 3) => kernels::light_cache::<3, 3>(links, flux, luma, co, cg),
-        (3, 2) => kernels::light_cache::<3, 2>(links, flux, luma, co, cg),
-        (3, _) => kernels::light_cache::<3, 1>(links, flux, luma, co, cg),
-        (4, 4) => kernels::light_cache::<4, 4>(links, flux, luma, co, cg),
-        (4, 3) => kernels::light_cache::<4, 3>(links, flux, luma, co, cg),
-        (4, 2) => kernels::light_cache::<4, 2>(links, flux, luma, co, cg),
-        (4, _) => kernels::light_cache::<4, 1>(links, flux, luma, co, cg),
+        (2, 2) => kernels::light_cache::<2, 2>(links, flux, scratch, luma, co, cg),
+        (2, _) => kernels::light_cache::<2, 1>(links, flux, scratch, luma, co, cg),
+        (3, 3) => kernels::light_cache::<3, 3>(links, flux, scratch, luma, co, cg),
+        (3, 2) => kernels::light_cache::<3, 2>(links, flux, scratch, luma, co, cg),
+        (3, _) => kernels::light_cache::<3, 1>(links, flux, scratch, luma, co, cg),
+        (4, 4) => kernels::light_cache::<4, 4>(links, flux, scratch, luma, co, cg),
+        (4, 3) => kernels::light_cache::<4, 3>(links, flux, scratch, luma, co, cg),
+        (4, 2) => kernels::light_cache::<4, 2>(links, flux, scratch, luma, co, cg),
+        (4, _) => kernels::light_cache::<4, 1>(links, flux, scratch, luma, co, cg),
         _ => kernels::light_cache_general(links, flux, bands, chroma, luma, co, cg),
     }
 }
@@ -671,6 +727,16 @@ impl Technique for Pic {
                         "runtime projection".into()
                     },
                     bake.link_bytes() as f64 / bake.link_nodes.len().max(1) as f64
+                ),
+            ),
+            (
+                "pic cache bands",
+                format!(
+                    "{} luma, {} chroma (baked for; running with {} and {})",
+                    bake.cache_bands[0],
+                    bake.cache_bands[1],
+                    self.settings.bands,
+                    self.settings.chroma_bands
                 ),
             ),
         ]

@@ -414,3 +414,40 @@ fn accuracy_against_the_path_tracer() {
         assert!(errors.image <= 0.15, "{scene} image {}", errors.image);
     }
 }
+
+/// A bake made for four bands runs with four unless the run names its
+/// bands: `relight bench --bake high.bake` must time the preset it baked.
+#[test]
+fn runs_with_the_bands_it_was_baked_for() {
+    let context = context("cornell-box-point");
+    let baked = pairs(&[("bands", "4"), ("surfels", "2048"), ("links", "32")]);
+    let bake = PicKind
+        .bake(&context, &baked, &NoProgress)
+        .expect("PIC bakes");
+    let run = |params: &[(&str, &str)]| {
+        let mut technique = PicKind
+            .create(context.clone(), Some(&bake), &pairs(params), &NoProgress)
+            .expect("PIC loads its bake");
+        let lights = context.scene.lights.clone();
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index: 0,
+            })
+            .expect("update");
+        let facts = technique.bake_facts();
+        let bands = facts
+            .iter()
+            .find(|(name, _)| *name == "pic cache bands")
+            .map(|(_, text)| text.clone())
+            .expect("bake facts name the bands");
+        (technique.receiver_irradiance().unwrap().to_vec(), bands)
+    };
+    let (default_values, default_bands) = run(&[]);
+    let (four_values, _) = run(&[("bands", "4")]);
+    let (three_values, three_bands) = run(&[("bands", "3")]);
+    assert!(default_bands.contains("running with 4 and 4"), "{default_bands}");
+    assert!(three_bands.contains("running with 3 and 3"), "{three_bands}");
+    assert_eq!(default_values, four_values);
+    assert_ne!(default_values, three_values);
+}
