@@ -446,8 +446,14 @@ fn runs_with_the_bands_it_was_baked_for() {
     let (default_values, default_bands) = run(&[]);
     let (four_values, _) = run(&[("bands", "4")]);
     let (three_values, three_bands) = run(&[("bands", "3")]);
-    assert!(default_bands.contains("running with 4 and 4"), "{default_bands}");
-    assert!(three_bands.contains("running with 3 and 3"), "{three_bands}");
+    assert!(
+        default_bands.contains("running with 4 and 4"),
+        "{default_bands}"
+    );
+    assert!(
+        three_bands.contains("running with 3 and 3"),
+        "{three_bands}"
+    );
     assert_eq!(default_values, four_values);
     assert_ne!(default_values, three_values);
 }
