@@ -24,7 +24,7 @@
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|
-//! | `preset` | `""` | `moderate` (32k surfels, 128 links, 3 bands) or `high` (128k, 254, 4): the paper's Sponza settings; other keys override it |
+//! | `preset` | `""` | `moderate` (32k surfels, 128 links, 3 bands) or `high` (128k, 254, 4): the paper's Sponza settings, both with `projected` links (faster on a CPU); other keys override it |
 //! | `surfels` | 32768 | n_s |
 //! | `links` | 128 | n_L, links per cache (stored padded to a multiple of 8) |
 //! | `bands` | 3 | SH bands of the caches (2 to 8); with `projected` also of the links |
@@ -163,11 +163,19 @@ impl PicParams {
     pub fn preset(name: &str) -> Result<Self, TechniqueError> {
         let mut params = Self::default();
         match name {
-            "" | "moderate" => {}
+            "" => {}
+            // The paper's Sponza settings, with SH-projected links: on a
+            // CPU the cache lighting then streams f16 rows at memory speed
+            // instead of evaluating SH and cone factors per link, 2.5x
+            // faster at 22 (moderate) or 36 (high) bytes a link instead of
+            // 12, and as accurate (Cornell box, all bounces: 7.6 % against
+            // 7.1 % at moderate, 6.2 % against 6.0 % at high).
+            "moderate" => params.projected = true,
             "high" => {
                 params.surfels = 131072;
                 params.links = 254;
                 params.bands = 4;
+                params.projected = true;
             }
             other => {
                 return Err(relight_technique::ParamError {

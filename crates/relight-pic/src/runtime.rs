@@ -909,3 +909,67 @@ impl Technique for Pic {
         ]
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use relight_core::sampling::Pcg32;
+
+    /// The F16C kernel against the scalar loop, for every row length it
+    /// serves, with chroma shorter than luma, and link counts whose last
+    /// rows take the scalar tail (fewer than 16 halves left) or where no
+    /// row fits 16 halves at all.
+    #[test]
+    fn projected_kernel_matches_the_scalar_loop() {
+        if !projected_kernel_available() {
+            return;
+        }
+        let mut rng = Pcg32::new(5, 0);
+        let flux: Vec<Vec3> = (0..40)
+            .map(|_| Vec3::new(rng.next_f32(), rng.next_f32() - 0.5, rng.next_f32() - 0.5))
+            .collect();
+        for (count, chroma_count) in [(4, 4), (9, 9), (9, 4), (16, 16), (16, 9)] {
+            for link_count in [1, 2, 3, 17, 64] {
+                let nodes: Vec<u32> = (0..link_count).map(|_| rng.next_u32() % 40).collect();
+                let coefficients: Vec<u16> = (0..link_count * count)
+                    .map(|_| half::f16::from_f32(4.0 * rng.next_f32() - 2.0).to_bits())
+                    .collect();
+                let mut fast = [[0.0f32; 16]; 3];
+                let mut slow = [[0.0f32; 16]; 3];
+                let [luma, co, cg] = &mut fast;
+                // SAFETY: checked above.
+                unsafe {
+                    light_cache_projected_avx2(
+                        &coefficients,
+                        &nodes,
+                        &flux,
+                        count,
+                        chroma_count,
+                        &mut luma[..count],
+                        &mut co[..chroma_count],
+                        &mut cg[..chroma_count],
+                    )
+                };
+                let [luma, co, cg] = &mut slow;
+                light_cache_projected(
+                    &coefficients,
+                    &nodes,
+                    &flux,
+                    count,
+                    chroma_count,
+                    &mut luma[..count],
+                    &mut co[..chroma_count],
+                    &mut cg[..chroma_count],
+                );
+                for (got, want) in fast.iter().flatten().zip(slow.iter().flatten()) {
+                    // Same products, summed in another order: f32 rounding of
+                    // at most 64 terms of size 2.
+                    assert!(
+                        (got - want).abs() <= 1e-4,
+                        "{count}/{chroma_count}, {link_count} links: {got} vs {want}"
+                    );
+                }
+            }
+        }
+    }
+}
