@@ -153,6 +153,16 @@ pub fn cosine_hemisphere_around(normal: Vec3, sample: Vec2) -> Vec3 {
     tangent * local.x + bitangent * local.y + normal * local.z
 }
 
+/// Uniform direction on the hemisphere about `normal`; pdf = 1 / (2 pi).
+#[inline]
+pub fn uniform_hemisphere_around(normal: Vec3, sample: Vec2) -> Vec3 {
+    let z = sample.x;
+    let radius = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * PI * sample.y;
+    let (tangent, bitangent) = orthonormal_basis(normal);
+    tangent * (radius * phi.cos()) + bitangent * (radius * phi.sin()) + normal * z
+}
+
 /// Uniform direction on the unit sphere; pdf = 1 / (4 pi).
 #[inline]
 pub fn uniform_sphere(sample: Vec2) -> Vec3 {
@@ -219,6 +229,26 @@ mod tests {
             / count as f64;
         // Var(cos) = 1/2 - 4/9 = 1/18; sigma of mean = 0.00053; 5 sigma bound.
         assert!((mean - 2.0 / 3.0).abs() < 0.0027, "{mean}");
+    }
+
+    #[test]
+    fn uniform_hemisphere_has_the_moments_of_its_pdf() {
+        // For pdf 1 / (2 pi): E[cos] = 1/2 and E[cos^2] = 1/3; every sample
+        // lies on the normal's side.
+        let normal = Vec3::new(0.3, -0.5, 0.8).normalize();
+        let mut rng = Pcg32::new(3, 3);
+        let count = 200_000;
+        let (mut first, mut second) = (0.0f64, 0.0f64);
+        for _ in 0..count {
+            let direction = uniform_hemisphere_around(normal, rng.next_vec2());
+            let cosine = direction.dot(normal) as f64;
+            assert!(cosine >= -1e-6 && (direction.length() - 1.0).abs() < 1e-5);
+            first += cosine;
+            second += cosine * cosine;
+        }
+        // Standard errors are about 0.0007: bounds of 5 of them.
+        assert!((first / count as f64 - 0.5).abs() < 0.003);
+        assert!((second / count as f64 - 1.0 / 3.0).abs() < 0.003);
     }
 
     #[test]

@@ -14,7 +14,7 @@ use relight_trace::Ray;
 use std::collections::HashMap;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 2;
+const PAYLOAD_VERSION: u32 = 3;
 
 /// A probe sample that escapes the scene.
 pub const ESCAPED: u32 = u32::MAX;
@@ -68,6 +68,40 @@ pub struct SrpBake {
     /// U_c rows in cluster-receiver order, `rank` f16 values each.
     pub reconstruction: Vec<u16>,
     pub stats: BakeStats,
+    /// Radiance transport of the glossy receivers (empty when off).
+    pub radiance: RadianceTransport,
+}
+
+/// The original paper's glossy extension: for receivers on materials with
+/// a Phong exponent, transport from the probes to the receiver's incident
+/// radiance in world-space SH of `bands` bands, compressed like the
+/// irradiance transport with one row per receiver and output coefficient.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RadianceTransport {
+    /// Output SH bands; 0 = no radiance transport.
+    pub bands: usize,
+    /// Principal vectors per cluster: each receiver brings `bands^2` rows
+    /// of differing shape, so this is larger than the irradiance's rank.
+    pub rank: usize,
+    /// Glossy receivers in cluster order, with cluster offsets.
+    pub receivers: Vec<u32>,
+    pub receiver_offsets: Vec<u32>,
+    pub cluster_probes: Vec<u32>,
+    pub probe_offsets: Vec<u32>,
+    /// Sigma_c V^T per cluster, as for the irradiance.
+    pub projection: Vec<u16>,
+    /// `bands^2` rows of `rank` f16 weights per receiver, in cluster order.
+    pub reconstruction: Vec<u16>,
+}
+
+impl RadianceTransport {
+    pub fn cluster_count(&self) -> usize {
+        self.receiver_offsets.len().saturating_sub(1)
+    }
+
+    pub fn outputs(&self) -> usize {
+        self.bands * self.bands
+    }
 }
 
 /// The shared sample directions: `count` stratified directions over the
@@ -198,6 +232,7 @@ impl SrpBake {
             projection: Vec::new(),
             reconstruction: Vec::with_capacity(receivers.len() * rank),
             stats,
+            radiance: RadianceTransport::default(),
         };
         let (mut energy, mut captured, mut valid_samples) = (0.0f64, 0.0f64, 0u64);
         for (members, output) in clusters.iter().zip(compressed) {
@@ -219,6 +254,11 @@ impl SrpBake {
         };
         bake.stats.valid_sample_fraction =
             valid_samples as f32 / (receivers.len() as f32 * params.samples as f32);
+
+        if params.radiance_order > 0 {
+            bake.radiance =
+                radiance_transport(context, &bake.probes, &nearby, &settings, params, progress);
+        }
 
         progress.start("srp probe sample tables", bake.probes.len() as u64);
         bake.sample_directions = sample_directions(params.probe_samples, params.seed);
@@ -292,6 +332,15 @@ impl SrpBake {
             stats.valid_sample_fraction,
             stats.captured_energy,
         ]);
+        let radiance = &self.radiance;
+        writer.u32(radiance.bands as u32);
+        writer.u32(radiance.rank as u32);
+        writer.u32s(&radiance.receivers);
+        writer.u32s(&radiance.receiver_offsets);
+        writer.u32s(&radiance.cluster_probes);
+        writer.u32s(&radiance.probe_offsets);
+        writer.halves(&radiance.projection);
+        writer.halves(&radiance.reconstruction);
         writer.finish()
     }
 
@@ -322,6 +371,16 @@ impl SrpBake {
             *count = reader.u32()?;
         }
         let floats = reader.f32s()?;
+        let radiance = RadianceTransport {
+            bands: reader.u32()? as usize,
+            rank: reader.u32()? as usize,
+            receivers: reader.u32s()?,
+            receiver_offsets: reader.u32s()?,
+            cluster_probes: reader.u32s()?,
+            probe_offsets: reader.u32s()?,
+            projection: reader.halves()?,
+            reconstruction: reader.halves()?,
+        };
         reader.end()?;
         let bake = Self {
             receiver_count,
@@ -348,6 +407,7 @@ impl SrpBake {
                 valid_sample_fraction: floats.get(1).copied().unwrap_or(0.0),
                 captured_energy: floats.get(2).copied().unwrap_or(0.0),
             },
+            radiance,
         };
         bake.validate().map_err(|message| reader.corrupt(message))?;
         Ok(bake)
@@ -414,8 +474,182 @@ impl SrpBake {
         {
             return Err("compressed matrices do not match their sizes");
         }
+        self.validate_radiance()
+    }
+
+    fn validate_radiance(&self) -> Result<(), &'static str> {
+        let radiance = &self.radiance;
+        if radiance.bands == 0 {
+            return if radiance.receivers.is_empty() && radiance.projection.is_empty() {
+                Ok(())
+            } else {
+                Err("radiance transport without bands")
+            };
+        }
+        if radiance.bands > MAX_RADIANCE_BANDS {
+            return Err("radiance transport bands outside 1..=5");
+        }
+        let monotonic = |offsets: &[u32], total: usize| {
+            offsets.first() == Some(&0)
+                && offsets.windows(2).all(|pair| pair[0] <= pair[1])
+                && offsets.last().map(|&last| last as usize) == Some(total)
+        };
+        if radiance.receiver_offsets.len() != radiance.probe_offsets.len()
+            || !monotonic(&radiance.receiver_offsets, radiance.receivers.len())
+            || !monotonic(&radiance.probe_offsets, radiance.cluster_probes.len())
+        {
+            return Err("radiance cluster offsets are inconsistent");
+        }
+        let mut seen = vec![false; self.receiver_count];
+        for &receiver in &radiance.receivers {
+            match seen.get_mut(receiver as usize) {
+                Some(slot) if !*slot => *slot = true,
+                _ => return Err("a glossy receiver does not exist or is listed twice"),
+            }
+        }
+        if radiance
+            .cluster_probes
+            .iter()
+            .any(|&probe| probe as usize >= self.probes.len())
+        {
+            return Err("a radiance cluster names a probe that does not exist");
+        }
+        let coefficients = sh::coefficient_count(self.bands);
+        if radiance.projection.len() != radiance.rank * coefficients * radiance.cluster_probes.len()
+            || radiance.reconstruction.len()
+                != radiance.rank * radiance.outputs() * radiance.receivers.len()
+        {
+            return Err("radiance matrices do not match their sizes");
+        }
         Ok(())
     }
+}
+
+/// The original paper kept radiance transport at order 4 (25
+/// coefficients) for speed; so does relight.
+pub const MAX_RADIANCE_BANDS: usize = 5;
+
+/// Radiance transport for every receiver on a material with a Phong
+/// exponent, clustered and compressed cluster by cluster like the
+/// irradiance transport.
+fn radiance_transport(
+    context: &SceneContext,
+    probes: &[Vec3],
+    nearby: &[Vec<u32>],
+    settings: &TransportSettings,
+    params: &SrpParams,
+    progress: &dyn Progress,
+) -> RadianceTransport {
+    let receivers = &context.atlas.receivers;
+    let glossy: Vec<u32> = (0..receivers.len() as u32)
+        .filter(|&receiver| {
+            let triangle = receivers.triangles[receiver as usize];
+            context.scene.material_of(triangle as usize).phong_exponent > 1.0
+        })
+        .collect();
+    let bands = params.radiance_order as usize + 1;
+    let outputs = bands * bands;
+    let coefficients = sh::coefficient_count(settings.bands);
+    let rank = params.radiance_pca_vectors as usize;
+    let settings = TransportSettings {
+        samples: params.radiance_samples,
+        ..*settings
+    };
+    let positions: Vec<Vec3> = glossy
+        .iter()
+        .map(|&receiver| receivers.positions[receiver as usize])
+        .collect();
+    // Each receiver brings `outputs` rows: clusters of cluster_size /
+    // outputs receivers keep the matrices (and the bake's memory and SVD
+    // time) the size of the irradiance's.
+    let cluster_receivers = (params.cluster_size as usize / outputs).max(1);
+    let clusters: Vec<Vec<u32>> = transport::aabb_clusters(&positions, cluster_receivers)
+        .into_iter()
+        .map(|members| {
+            members
+                .into_iter()
+                .map(|local| glossy[local as usize])
+                .collect()
+        })
+        .collect();
+    progress.start("srp radiance transport", glossy.len() as u64);
+    let compressed: Vec<ClusterOutput> = clusters
+        .par_iter()
+        .map_init(
+            || (TransportScratch::new(settings.bands), Vec::new()),
+            |(scratch, rows), members| {
+                let mut columns: Vec<u32> = members
+                    .iter()
+                    .flat_map(|&receiver| nearby[receiver as usize].iter().copied())
+                    .collect();
+                columns.sort_unstable();
+                columns.dedup();
+                let width = columns.len() * coefficients;
+                let mut matrix = vec![0.0f32; members.len() * outputs * width];
+                let mut valid_samples = 0u64;
+                for (local, &receiver) in members.iter().enumerate() {
+                    let own = &nearby[receiver as usize];
+                    let own_width = own.len() * coefficients;
+                    rows.clear();
+                    rows.resize(outputs * own_width, 0.0);
+                    valid_samples += transport::radiance_rows(
+                        context,
+                        probes,
+                        receiver as usize,
+                        own,
+                        &settings,
+                        bands,
+                        scratch,
+                        rows,
+                    ) as u64;
+                    for output in 0..outputs {
+                        let target = &mut matrix[(local * outputs + output) * width..][..width];
+                        for (slot, probe) in own.iter().enumerate() {
+                            let column = columns
+                                .binary_search(probe)
+                                .expect("nearby probe is a column");
+                            target[column * coefficients..(column + 1) * coefficients]
+                                .copy_from_slice(
+                                    &rows[output * own_width + slot * coefficients..]
+                                        [..coefficients],
+                                );
+                        }
+                    }
+                }
+                let output = compress_cluster(
+                    &matrix,
+                    members.len() * outputs,
+                    columns,
+                    coefficients,
+                    rank,
+                    valid_samples,
+                );
+                progress.advance(members.len() as u64);
+                output
+            },
+        )
+        .collect();
+    progress.finish();
+    let mut radiance = RadianceTransport {
+        bands,
+        rank,
+        receiver_offsets: vec![0],
+        probe_offsets: vec![0],
+        ..Default::default()
+    };
+    for (members, output) in clusters.iter().zip(compressed) {
+        radiance.receivers.extend_from_slice(members);
+        radiance
+            .receiver_offsets
+            .push(radiance.receivers.len() as u32);
+        radiance.cluster_probes.extend_from_slice(&output.probes);
+        radiance
+            .probe_offsets
+            .push(radiance.cluster_probes.len() as u32);
+        radiance.projection.extend(output.projection);
+        radiance.reconstruction.extend(output.reconstruction);
+    }
+    radiance
 }
 
 /// One compressed cluster.
@@ -488,8 +722,28 @@ fn bake_cluster(
 ) -> ClusterOutput {
     let (matrix, columns, valid_samples) =
         cluster_transport(context, probes, nearby, members, settings, scratch);
+    compress_cluster(
+        &matrix,
+        members.len(),
+        columns,
+        coefficients,
+        rank,
+        valid_samples,
+    )
+}
+
+/// Compresses one cluster's `rows` x (columns x C) transport matrix to
+/// `rank` principal vectors in f16.
+fn compress_cluster(
+    matrix: &[f32],
+    rows: usize,
+    columns: Vec<u32>,
+    coefficients: usize,
+    rank: usize,
+    valid_samples: u64,
+) -> ClusterOutput {
     let width = columns.len() * coefficients;
-    let compressed = transport::compress(&matrix, members.len(), width, rank);
+    let compressed = transport::compress(matrix, rows, width, rank);
     let energy: f64 = matrix.iter().map(|&v| (v as f64) * (v as f64)).sum();
     // ||T_k||^2 = sum of the kept sigma^2 = squared norm of the projection.
     let captured: f64 = compressed
@@ -506,8 +760,8 @@ fn bake_cluster(
                 f16::from_f32(compressed.projection[k * width + column]).to_bits();
         }
     }
-    let mut reconstruction = vec![0u16; members.len() * rank];
-    for row in 0..members.len() {
+    let mut reconstruction = vec![0u16; rows * rank];
+    for row in 0..rows {
         for k in 0..compressed.rank {
             reconstruction[row * rank + k] =
                 f16::from_f32(compressed.reconstruction[row * compressed.rank + k]).to_bits();

@@ -44,6 +44,9 @@
 //! | `probe_samples` | 1024 | sample directions per probe (the thesis: 1024) |
 //! | `cluster_size` | 1024 | receivers per CPCA cluster at most |
 //! | `pca_vectors` | 32 | principal vectors per cluster, n_c |
+//! | `radiance_order` | 0 | SH order (1 to 4) of the radiance transport to receivers on materials with a Phong exponent, for glossy reflection with parallax and visibility (the original paper's extension); 0 = off, glossy reflection then blends the probes |
+//! | `radiance_samples` | 1024 | uniform hemisphere samples per glossy receiver for the radiance transport |
+//! | `radiance_pca_vectors` | 64 | principal vectors per cluster of the radiance transport; its clusters hold `cluster_size` / (radiance_order + 1)^2 receivers, as each brings that many rows (Cornell box, glossy walls: 32 / 64 / 128 vectors gave 9.3 / 8.0 / 7.9 %) |
 //! | `texel_jitter` | false | transport rays start anywhere in the texel (the thesis) rather than at its centre, where relight's receivers and references are evaluated |
 //! | `bounces` | 16 | 1 = single bounce; more = last frame's indirect light feeds the probes, and the first update runs this many passes |
 //! | `probe_budget` | 0 | probes refreshed per frame, round robin (staggered updates); 0 = all |
@@ -81,9 +84,13 @@
 //!   lights higher bounces lag by a frame each. `bounces` cannot stop the
 //!   feedback at an exact count without a lightmap per bounce, so it sets
 //!   the passes of the first update and switches feedback off at 1.
-//! - Points in space (dynamic objects) and glossy reflection use the probes
-//!   directly, distance-weighted with visibility to each probe, without
-//!   parallax correction: approximations, documented as such.
+//! - Points in space (dynamic objects) use the probes directly,
+//!   distance-weighted with visibility to each probe, without parallax
+//!   correction: an approximation, documented as such. So does glossy
+//!   reflection unless `radiance_order` > 0, which precomputes the
+//!   receivers' incident radiance from the probes with the same parallax
+//!   and visibility as the irradiance transport (one CPCA row per receiver
+//!   and output coefficient) and convolves it with the Phong lobe.
 //! - A receiver whose primary ray hits the back of a surface has no valid
 //!   probe for that direction (check 2 of section 5.6.4), and a probe sample
 //!   that hits a back face reads black: the lightmap holds front sides only.
@@ -106,7 +113,7 @@ use std::sync::Arc;
 
 /// The parameters only the bake reads; the others act at run time, so one
 /// bake serves every value of them.
-pub const BAKE_PARAMETERS: [&str; 14] = [
+pub const BAKE_PARAMETERS: [&str; 17] = [
     "order",
     "probe_count",
     "probes",
@@ -120,6 +127,9 @@ pub const BAKE_PARAMETERS: [&str; 14] = [
     "cluster_size",
     "pca_vectors",
     "texel_jitter",
+    "radiance_order",
+    "radiance_samples",
+    "radiance_pca_vectors",
     "seed",
 ];
 
@@ -140,6 +150,9 @@ pub struct SrpParams {
     pub cluster_size: u32,
     pub pca_vectors: u32,
     pub texel_jitter: bool,
+    pub radiance_order: u32,
+    pub radiance_samples: u32,
+    pub radiance_pca_vectors: u32,
     pub bounces: u32,
     pub probe_budget: u32,
     pub specular: f32,
@@ -162,6 +175,9 @@ impl Default for SrpParams {
             cluster_size: 1024,
             pca_vectors: 32,
             texel_jitter: false,
+            radiance_order: 0,
+            radiance_samples: 1024,
+            radiance_pca_vectors: 64,
             bounces: 16,
             probe_budget: 0,
             specular: 0.0,
@@ -199,12 +215,17 @@ impl SrpParams {
             Some("radius_factor must be a finite number > 0".into())
         } else if self.max_nearby == 0 {
             Some("max_nearby must be at least 1".into())
-        } else if self.samples == 0 || self.probe_samples == 0 {
-            Some("samples and probe_samples must be at least 1".into())
+        } else if self.samples == 0 || self.probe_samples == 0 || self.radiance_samples == 0 {
+            Some("samples, probe_samples and radiance_samples must be at least 1".into())
+        } else if self.radiance_order as usize >= bake::MAX_RADIANCE_BANDS {
+            Some(format!(
+                "radiance_order must be 0 (off) to {} (the original paper's limit)",
+                bake::MAX_RADIANCE_BANDS - 1
+            ))
         } else if self.cluster_size == 0 {
             Some("cluster_size must be at least 1".into())
-        } else if self.pca_vectors == 0 {
-            Some("pca_vectors must be at least 1".into())
+        } else if self.pca_vectors == 0 || self.radiance_pca_vectors == 0 {
+            Some("pca_vectors and radiance_pca_vectors must be at least 1".into())
         } else if self.bounces == 0 {
             Some("bounces must be at least 1".into())
         } else if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {

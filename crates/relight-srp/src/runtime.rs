@@ -48,6 +48,14 @@ pub struct Srp {
     probe_radiance: Vec<f32>,
     /// Light basis vectors: `light_basis[(cluster * 3 + channel) * rank + k]`.
     light_basis: Vec<f32>,
+    /// The same for the radiance transport's clusters.
+    radiance_light_basis: Vec<f32>,
+    /// Incident radiance SH of the glossy receivers, in radiance-cluster
+    /// order: `glossy_radiance[(slot * 3 + channel) * outputs + m]`.
+    glossy_sh: Vec<f32>,
+    /// Per atlas texel (gutters through their source), the glossy slot of
+    /// its receiver, or `u32::MAX`; empty without radiance transport.
+    glossy_slot_of_texel: Vec<u32>,
     receiver_values: Vec<Rgb>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
@@ -100,6 +108,9 @@ impl Srp {
             visible_albedos,
             probe_radiance: vec![0.0; probe_count * 3 * coefficients],
             light_basis: vec![0.0; cluster_count * 3 * bake.rank],
+            radiance_light_basis: vec![0.0; bake.radiance.cluster_count() * 3 * bake.radiance.rank],
+            glossy_sh: vec![0.0; bake.radiance.receivers.len() * 3 * bake.radiance.outputs()],
+            glossy_slot_of_texel: glossy_slots(&context, &bake),
             receiver_values: vec![Rgb::ZERO; bake.receiver_count],
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             timings: StageTimings::default(),
@@ -262,32 +273,106 @@ impl Srp {
     /// radiance of the cluster's probes (section 4.5.2).
     fn project_clusters(&mut self) {
         let bake = &self.bake;
-        let rank = bake.rank;
-        let coefficients = self.coefficients;
-        let probe_radiance = &self.probe_radiance;
-        self.light_basis
-            .par_chunks_mut(3 * rank)
+        project_cluster_set(
+            &self.probe_radiance,
+            self.coefficients,
+            bake.rank,
+            &bake.cluster_probes,
+            &bake.probe_offsets,
+            &bake.projection,
+            &mut self.light_basis,
+        );
+    }
+
+    /// Incident radiance SH of every glossy receiver: the radiance
+    /// clusters' light basis, then U_c times it per output coefficient.
+    fn transport_radiance(&mut self) {
+        let bake = &self.bake;
+        let radiance = &bake.radiance;
+        project_cluster_set(
+            &self.probe_radiance,
+            self.coefficients,
+            radiance.rank,
+            &radiance.cluster_probes,
+            &radiance.probe_offsets,
+            &radiance.projection,
+            &mut self.radiance_light_basis,
+        );
+        let rank = radiance.rank;
+        let outputs = radiance.outputs();
+        let light_basis = &self.radiance_light_basis;
+        let offsets = &radiance.receiver_offsets;
+        self.glossy_sh
+            .par_chunks_mut(3 * outputs)
             .enumerate()
-            .for_each_init(Vec::new, |gathered, (cluster, out)| {
-                let probes = &bake.cluster_probes[bake.probe_offsets[cluster] as usize
-                    ..bake.probe_offsets[cluster + 1] as usize];
-                let width = probes.len() * coefficients;
-                // Channel-major copy of the cluster's probe radiance, so each
-                // projection row is three contiguous dot products.
-                gathered.clear();
-                gathered.resize(3 * width, 0.0f32);
-                for (slot, &probe) in probes.iter().enumerate() {
+            .for_each(|(slot, out)| {
+                let cluster = offsets.partition_point(|&offset| offset as usize <= slot) - 1;
+                let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
+                for m in 0..outputs {
+                    let row = (slot * outputs + m) * rank;
+                    let value = kernels::reconstruct(
+                        &radiance.reconstruction[row..row + rank],
+                        basis,
+                        rank,
+                    );
                     for channel in 0..3 {
-                        let source = (probe as usize * 3 + channel) * coefficients;
-                        let target = channel * width + slot * coefficients;
-                        gathered[target..target + coefficients]
-                            .copy_from_slice(&probe_radiance[source..source + coefficients]);
+                        out[channel * outputs + m] = value[channel];
                     }
                 }
-                let start = bake.probe_offsets[cluster] as usize * coefficients * rank;
-                let matrix = &bake.projection[start..start + rank * width];
-                kernels::project_cluster(matrix, gathered, width, rank, out);
             });
+    }
+
+    /// Glossy reflection from the radiance transport: the incident radiance
+    /// SH of the texels around the point, bilinearly weighted, convolved
+    /// with `band_factors` and evaluated in `direction`. `None` where no
+    /// surrounding texel has radiance transport.
+    fn transported_glossy(
+        &self,
+        point: &SurfacePoint,
+        direction: Vec3,
+        band_factors: &[f32; sh::MAX_BANDS],
+    ) -> Option<Rgb> {
+        let radiance = &self.bake.radiance;
+        if radiance.bands == 0 {
+            return None;
+        }
+        let outputs = radiance.outputs();
+        let mut filtered = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
+        sh::evaluate(direction, radiance.bands, &mut filtered[..outputs]);
+        for band in 0..radiance.bands {
+            for value in &mut filtered[band * band..(band + 1) * (band + 1)] {
+                *value *= band_factors[band];
+            }
+        }
+        let atlas = &self.context.atlas;
+        let uv = atlas.uv_of(point.triangle, point.barycentric) - glam::Vec2::splat(0.5);
+        let (x0, y0) = (uv.x.floor(), uv.y.floor());
+        let (fx, fy) = (uv.x - x0, uv.y - y0);
+        let (mut sum, mut total) = (Rgb::ZERO, 0.0f32);
+        for (dx, dy, weight) in [
+            (0, 0, (1.0 - fx) * (1.0 - fy)),
+            (1, 0, fx * (1.0 - fy)),
+            (0, 1, (1.0 - fx) * fy),
+            (1, 1, fx * fy),
+        ] {
+            let x = (x0 as i64 + dx).clamp(0, atlas.width as i64 - 1) as usize;
+            let y = (y0 as i64 + dy).clamp(0, atlas.height as i64 - 1) as usize;
+            let slot = self.glossy_slot_of_texel[y * atlas.width as usize + x];
+            if slot == u32::MAX || weight <= 0.0 {
+                continue;
+            }
+            let values = &self.glossy_sh[slot as usize * 3 * outputs..][..3 * outputs];
+            for channel in 0..3 {
+                sum[channel] += weight
+                    * values[channel * outputs..(channel + 1) * outputs]
+                        .iter()
+                        .zip(&filtered[..outputs])
+                        .map(|(value, basis)| value * basis)
+                        .sum::<f32>();
+            }
+            total += weight;
+        }
+        (total > 0.0).then(|| (sum / total).max(Rgb::ZERO))
     }
 
     /// Irradiance per receiver: U_c times the cluster's light basis.
@@ -390,6 +475,71 @@ impl Srp {
     }
 }
 
+/// Sigma_c V^T times the probe radiance of each cluster's probes, for one
+/// set of clusters (the irradiance's or the radiance's), into
+/// `light_basis[(cluster * 3 + channel) * rank + k]`.
+fn project_cluster_set(
+    probe_radiance: &[f32],
+    coefficients: usize,
+    rank: usize,
+    cluster_probes: &[u32],
+    probe_offsets: &[u32],
+    projection: &[u16],
+    light_basis: &mut [f32],
+) {
+    light_basis
+        .par_chunks_mut(3 * rank)
+        .enumerate()
+        .for_each_init(Vec::new, |gathered, (cluster, out)| {
+            let probes = &cluster_probes
+                [probe_offsets[cluster] as usize..probe_offsets[cluster + 1] as usize];
+            let width = probes.len() * coefficients;
+            // Channel-major copy of the cluster's probe radiance, so each
+            // projection row is three contiguous dot products.
+            gathered.clear();
+            gathered.resize(3 * width, 0.0f32);
+            for (slot, &probe) in probes.iter().enumerate() {
+                for channel in 0..3 {
+                    let source = (probe as usize * 3 + channel) * coefficients;
+                    let target = channel * width + slot * coefficients;
+                    gathered[target..target + coefficients]
+                        .copy_from_slice(&probe_radiance[source..source + coefficients]);
+                }
+            }
+            let start = probe_offsets[cluster] as usize * coefficients * rank;
+            let matrix = &projection[start..start + rank * width];
+            kernels::project_cluster(matrix, gathered, width, rank, out);
+        });
+}
+
+/// Per atlas texel, the slot of its receiver in the radiance transport
+/// (gutter texels through the texel they copy), or `u32::MAX`.
+fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
+    let radiance = &bake.radiance;
+    if radiance.bands == 0 {
+        return Vec::new();
+    }
+    let atlas = &context.atlas;
+    let mut slot_of_receiver = vec![u32::MAX; bake.receiver_count];
+    for (slot, &receiver) in radiance.receivers.iter().enumerate() {
+        slot_of_receiver[receiver as usize] = slot as u32;
+    }
+    let mut slots: Vec<u32> = atlas
+        .receiver_of_texel
+        .iter()
+        .map(|&receiver| {
+            slot_of_receiver
+                .get(receiver as usize)
+                .copied()
+                .unwrap_or(u32::MAX)
+        })
+        .collect();
+    for &(target, source) in &atlas.dilation {
+        slots[target as usize] = slots[source as usize];
+    }
+    slots
+}
+
 /// The cosine lobe's factors (Ramamoorthi and Hanrahan) for irradiance.
 fn cosine_band_factors() -> [f32; sh::MAX_BANDS] {
     std::array::from_fn(sh::cosine_lobe_factor)
@@ -426,6 +576,9 @@ impl Technique for Srp {
             });
             timings.time("cluster projection", || self.project_clusters());
             timings.time("reconstruction", || self.reconstruct());
+        }
+        if self.bake.radiance.bands > 0 {
+            timings.time("radiance transport", || self.transport_radiance());
         }
         // Receivers into their texels in atlas order (mostly sequential
         // writes), then the gutters copy them; both split across threads.
@@ -483,14 +636,13 @@ impl Technique for Srp {
             return None;
         }
         let reflected = (-toward_viewer).reflect(point.normal).normalize_or_zero();
+        let lobe = sh::phong_band_factors(exponent);
+        if let Some(radiance) = self.transported_glossy(point, reflected, &lobe) {
+            return Some(radiance * self.settings.specular);
+        }
         Some(
-            self.blend_probes(
-                point.position,
-                point.normal,
-                reflected,
-                5,
-                &sh::phong_band_factors(exponent),
-            ) * self.settings.specular,
+            self.blend_probes(point.position, point.normal, reflected, 5, &lobe)
+                * self.settings.specular,
         )
     }
 
@@ -534,6 +686,20 @@ impl Technique for Srp {
                     stats.captured_energy * 100.0
                 ),
             ),
+            (
+                "srp radiance transport",
+                if bake.radiance.bands == 0 {
+                    "off (glossy reflection blends the probes)".to_string()
+                } else {
+                    format!(
+                        "order {} for {} glossy receivers in {} clusters, {} vectors each",
+                        bake.radiance.bands - 1,
+                        bake.radiance.receivers.len(),
+                        bake.radiance.cluster_count(),
+                        bake.radiance.rank
+                    )
+                },
+            ),
         ]
     }
 
@@ -570,6 +736,20 @@ impl Technique for Srp {
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
             MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
+            MemoryEntry::new(
+                "radiance transport matrices and lists (f16, u32)",
+                (bake.radiance.projection.len() + bake.radiance.reconstruction.len()) * 2
+                    + (bake.radiance.receivers.len()
+                        + bake.radiance.receiver_offsets.len()
+                        + bake.radiance.cluster_probes.len()
+                        + bake.radiance.probe_offsets.len())
+                        * 4,
+            ),
+            MemoryEntry::new(
+                "glossy receivers' radiance SH and texel slots",
+                (self.glossy_sh.len() + self.radiance_light_basis.len()) * 4
+                    + self.glossy_slot_of_texel.len() * 4,
+            ),
         ]
     }
 }

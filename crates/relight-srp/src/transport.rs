@@ -5,13 +5,15 @@
 use crate::probes::falloff_weight;
 use glam::{Vec2, Vec3};
 use relight_core::sampling::{
-    cosine_hemisphere_around, stratification_offset, stratified_square, SampleStream,
+    cosine_hemisphere_around, stratification_offset, stratified_square, uniform_hemisphere_around,
+    SampleStream,
 };
 use relight_core::sh;
 use relight_technique::SceneContext;
 use relight_trace::Ray;
 
 /// What the transport of one receiver needs to know.
+#[derive(Clone, Copy, Debug)]
 pub struct TransportSettings {
     pub bands: usize,
     pub samples: u32,
@@ -83,6 +85,96 @@ fn texel_point(
     }
 }
 
+/// What one primary sample of a receiver gives the probes.
+enum SampleKernel {
+    /// The ray leaves the scene. Light arriving from the environment is
+    /// direct light in relight (the direct-light service gives it to every
+    /// receiver), so this direction carries no indirect light at all: a
+    /// valid sample whose kernel is zero for every probe. The thesis instead
+    /// asks probes whether they too see the environment, and drops the
+    /// sample when none does; at openings, where probes deeper inside see
+    /// walls in that direction, that hands the room's light to directions
+    /// that are dark.
+    Escaped,
+    /// No probe can stand in for the surface the ray hits.
+    Invalid,
+    /// `scratch.visible` and `scratch.directions` name the probes that see
+    /// the hit point; the value is the sum of their weights.
+    Valid(f32),
+}
+
+/// Traces `primary` and asks each nearby probe whether it can stand in for
+/// the point hit, with the two validity checks of section 5.6.4 and the
+/// parallax-corrected direction of equation 4.5.
+fn probe_kernels(
+    context: &SceneContext,
+    probes: &[Vec3],
+    nearby: &[u32],
+    primary: &Ray,
+    epsilon: f32,
+    scratch: &mut TransportScratch,
+) -> SampleKernel {
+    let Some(hit) = context.bvh.intersect(primary) else {
+        return SampleKernel::Escaped;
+    };
+    let triangle = hit.triangle as usize;
+    let surface_normal = context.scene.mesh.geometric_normal(triangle);
+    // Check 2 of section 5.6.4: the receiver must see the front of the
+    // surface it hits; otherwise no probe can stand in.
+    if surface_normal.dot(primary.direction) >= 0.0 {
+        return SampleKernel::Invalid;
+    }
+    let [a, b, c] = context.scene.mesh.vertices(triangle);
+    let hit_point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+    let lifted = hit_point + surface_normal * epsilon;
+    let mut denominator = 0.0f32;
+    for (slot, &probe) in nearby.iter().enumerate() {
+        let probe = probes[probe as usize];
+        // Check 1: the probe must be in front of the surface.
+        let seen = (probe - hit_point).dot(surface_normal) > 0.0 && {
+            let ray = Ray {
+                origin: probe,
+                direction: lifted - probe,
+                t_max: 1.0,
+            };
+            !context.bvh.occluded(&ray)
+        };
+        scratch.visible[slot] = seen;
+        if seen {
+            scratch.directions[slot] = (hit_point - probe).normalize_or_zero();
+            denominator += scratch.weights[slot];
+        }
+    }
+    if denominator > 0.0 {
+        SampleKernel::Valid(denominator)
+    } else {
+        SampleKernel::Invalid
+    }
+}
+
+/// The probe weights of equation 4.4 for `receiver` and the per-probe
+/// scratch sized for `nearby`.
+fn prepare_scratch(
+    probes: &[Vec3],
+    centre: Vec3,
+    nearby: &[u32],
+    radius: f32,
+    scratch: &mut TransportScratch,
+) {
+    scratch.weights.clear();
+    scratch.weights.extend(
+        nearby
+            .iter()
+            .map(|&probe| falloff_weight(probes[probe as usize].distance(centre) / radius)),
+    );
+    scratch.visible.clear();
+    scratch.visible.resize(nearby.len(), false);
+    scratch.directions.clear();
+    scratch.directions.resize(nearby.len(), Vec3::ZERO);
+    scratch.folded.clear();
+    scratch.folded.resize(nearby.len(), 0);
+}
+
 /// The transport row of one receiver: `row[k * C + j]` = alpha for the k-th
 /// of `nearby` probes and SH coefficient j (equation 4.12), estimated from
 /// cosine-weighted samples (equation 5.6, with the factor pi kept so the
@@ -104,18 +196,7 @@ pub fn transport_row(
     let normal = receivers.normals[receiver];
     let centre = receivers.positions[receiver];
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
-    scratch.weights.clear();
-    scratch.weights.extend(
-        nearby.iter().map(|&probe| {
-            falloff_weight(probes[probe as usize].distance(centre) / settings.radius)
-        }),
-    );
-    scratch.visible.clear();
-    scratch.visible.resize(nearby.len(), false);
-    scratch.directions.clear();
-    scratch.directions.resize(nearby.len(), Vec3::ZERO);
-    scratch.folded.clear();
-    scratch.folded.resize(nearby.len(), 0);
+    prepare_scratch(probes, centre, nearby, settings.radius, scratch);
     let offset = stratification_offset(settings.seed, receiver as u64);
     let mut valid = 0u32;
     for sample in 0..settings.samples {
@@ -131,57 +212,16 @@ pub fn transport_row(
             direction,
             t_max: f32::INFINITY,
         };
-        let mut denominator = 0.0f32;
-        match context.bvh.intersect(&primary) {
-            Some(hit) => {
-                let triangle = hit.triangle as usize;
-                let surface_normal = context.scene.mesh.geometric_normal(triangle);
-                // Check 2 of section 5.6.4: the receiver must see the front
-                // of the surface it hits; otherwise no probe can stand in.
-                if surface_normal.dot(direction) >= 0.0 {
-                    continue;
-                }
-                let [a, b, c] = context.scene.mesh.vertices(triangle);
-                let hit_point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
-                let lifted = hit_point + surface_normal * epsilon;
-                for (slot, &probe) in nearby.iter().enumerate() {
-                    let probe = probes[probe as usize];
-                    // Check 1: the probe must be in front of the surface.
-                    let seen = (probe - hit_point).dot(surface_normal) > 0.0 && {
-                        let ray = Ray {
-                            origin: probe,
-                            direction: lifted - probe,
-                            t_max: 1.0,
-                        };
-                        !context.bvh.occluded(&ray)
-                    };
-                    scratch.visible[slot] = seen;
-                    if seen {
-                        // Parallax-corrected direction, equation 4.5.
-                        scratch.directions[slot] = (hit_point - probe).normalize_or_zero();
-                        denominator += scratch.weights[slot];
-                    }
-                }
-            }
-            None => {
-                // The ray leaves the scene. Light arriving from the
-                // environment is direct light in relight (the direct-light
-                // service gives it to every receiver), so this direction
-                // carries no indirect light at all: a valid sample whose
-                // kernel is zero for every probe. The thesis instead asks
-                // probes whether they too see the environment, and drops
-                // the sample when none does; at openings, where probes
-                // deeper inside see walls in that direction, that hands the
-                // room's light to directions that are dark.
+        let denominator = match probe_kernels(context, probes, nearby, &primary, epsilon, scratch) {
+            SampleKernel::Escaped => {
                 valid += 1;
                 continue;
             }
-        }
-        if denominator <= 0.0 {
             // No probe sees what the receiver sees: excluded from the
             // normalisation (section 5.6.5).
-            continue;
-        }
+            SampleKernel::Invalid => continue,
+            SampleKernel::Valid(denominator) => denominator,
+        };
         valid += 1;
         let inverse_count = 1.0 / valid as f32;
         for slot in 0..nearby.len() {
@@ -213,6 +253,87 @@ pub fn transport_row(
             for mean in &mut row[slot * coefficients..(slot + 1) * coefficients] {
                 *mean *= scale;
             }
+        }
+    }
+    valid
+}
+
+/// The radiance transport of one receiver (the original paper's glossy
+/// extension): `rows[m * W + k * C + j]`, W = `nearby.len()` x C, maps
+/// coefficient j of the k-th nearby probe to coefficient m (of
+/// `output_bands`) of the incident radiance at the receiver, in world
+/// space: the integral of Y_m(omega) times the probe-interpolated radiance
+/// arriving from omega, with the same probe kernels as `transport_row`.
+/// Uniform hemisphere samples (pdf 1 / 2 pi), because the cosine-weighted
+/// ones of the irradiance would divide by the cosine here, an estimator of
+/// unbounded variance at grazing directions. Returns the valid samples.
+#[allow(clippy::too_many_arguments)]
+pub fn radiance_rows(
+    context: &SceneContext,
+    probes: &[Vec3],
+    receiver: usize,
+    nearby: &[u32],
+    settings: &TransportSettings,
+    output_bands: usize,
+    scratch: &mut TransportScratch,
+    rows: &mut [f32],
+) -> u32 {
+    let receivers = &context.atlas.receivers;
+    let coefficients = sh::coefficient_count(settings.bands);
+    let outputs = sh::coefficient_count(output_bands);
+    let width = nearby.len() * coefficients;
+    debug_assert_eq!(rows.len(), outputs * width);
+    rows.fill(0.0);
+    let normal = receivers.normals[receiver];
+    let centre = receivers.positions[receiver];
+    let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+    prepare_scratch(probes, centre, nearby, settings.radius, scratch);
+    // A stream apart from the irradiance rows' so the two estimates are
+    // independent.
+    let stream = receiver as u64 | (1 << 40);
+    let offset = stratification_offset(settings.seed, stream);
+    let mut output_basis = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
+    let mut valid = 0u32;
+    for sample in 0..settings.samples {
+        let mut rng = SampleStream::new(settings.seed, stream, sample as u64);
+        let direction = uniform_hemisphere_around(
+            normal,
+            stratified_square(sample, settings.samples, offset, &mut rng),
+        );
+        let primary = Ray {
+            origin: centre + normal * epsilon,
+            direction,
+            t_max: f32::INFINITY,
+        };
+        let denominator = match probe_kernels(context, probes, nearby, &primary, epsilon, scratch) {
+            SampleKernel::Escaped => {
+                valid += 1;
+                continue;
+            }
+            SampleKernel::Invalid => continue,
+            SampleKernel::Valid(denominator) => denominator,
+        };
+        valid += 1;
+        sh::evaluate(direction, output_bands, &mut output_basis[..outputs]);
+        for slot in 0..nearby.len() {
+            if !scratch.visible[slot] {
+                continue;
+            }
+            let kernel = scratch.weights[slot] / denominator;
+            sh::evaluate(scratch.directions[slot], settings.bands, &mut scratch.basis);
+            for (m, &outgoing) in output_basis[..outputs].iter().enumerate() {
+                let scale = kernel * outgoing;
+                let target = &mut rows[m * width + slot * coefficients..][..coefficients];
+                for (value, basis) in target.iter_mut().zip(&scratch.basis) {
+                    *value += scale * basis;
+                }
+            }
+        }
+    }
+    if valid > 0 {
+        let scale = 2.0 * std::f32::consts::PI / valid as f32;
+        for value in rows.iter_mut() {
+            *value *= scale;
         }
     }
     valid

@@ -199,8 +199,15 @@ fn reference(context: &SceneContext, samples: u32) -> Vec<Rgb> {
 /// all of them.
 #[test]
 fn bake_is_deterministic_across_thread_counts() {
-    let context = context("cornell-box-point");
-    let params = pairs(&[("samples", "32"), ("order", "3"), ("probe_samples", "256")]);
+    // Glossy walls, so the radiance transport is baked and compared too.
+    let context = glossy_cornell();
+    let params = pairs(&[
+        ("samples", "32"),
+        ("order", "3"),
+        ("probe_samples", "256"),
+        ("radiance_order", "2"),
+        ("radiance_samples", "32"),
+    ]);
     let bake_on = |threads: usize| {
         rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -344,4 +351,216 @@ fn accuracy_within_the_bounds_at_order_seven() {
         assert!(lightmap <= 0.10, "{scene}: lightmap relRMSE {lightmap}");
         assert!(image <= 0.15, "{scene}: image relRMSE {image}");
     }
+}
+
+/// The point-lit Cornell box with its white walls, floor and boxes glossy.
+fn glossy_cornell() -> Arc<SceneContext> {
+    let mut scene =
+        relight_scene::load_scene(&scene_path("cornell-box-point")).expect("shipped scene loads");
+    for material in &mut scene.materials {
+        if material.name == "white" {
+            material.phong_exponent = 8.0;
+        }
+    }
+    Arc::new(
+        SceneContext::new(
+            scene,
+            ContextSettings {
+                lightmap: TexelDensity::from_resolution(None),
+                ..ContextSettings::default()
+            },
+        )
+        .expect("context"),
+    )
+}
+
+/// Path-traced incident radiance at a receiver, projected on SH of
+/// `bands` bands: uniform hemisphere rays, each reading the radiance that
+/// leaves the surface it hits (albedo / pi x its direct irradiance plus
+/// the path-traced indirect irradiance of the reference lightmap there).
+fn reference_incident_sh(
+    context: &SceneContext,
+    reference_lightmap: &[Rgb],
+    receiver: usize,
+    bands: usize,
+    samples: u32,
+    seed: u64,
+) -> Vec<[f32; 3]> {
+    use relight_core::sampling::{
+        stratification_offset, stratified_square, uniform_hemisphere_around, SampleStream,
+    };
+    let receivers = &context.atlas.receivers;
+    let (position, normal) = (receivers.positions[receiver], receivers.normals[receiver]);
+    let direct = context.direct();
+    let lights = context.scene.lights.clone();
+    let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+    let count = bands * bands;
+    let mut sums = vec![[0.0f32; 3]; count];
+    let mut basis = vec![0.0f32; count];
+    let offset = stratification_offset(seed, receiver as u64);
+    for sample in 0..samples {
+        let mut rng = SampleStream::new(seed, receiver as u64, sample as u64);
+        let direction =
+            uniform_hemisphere_around(normal, stratified_square(sample, samples, offset, &mut rng));
+        let ray = relight_trace::Ray {
+            origin: position + normal * epsilon,
+            direction,
+            t_max: f32::INFINITY,
+        };
+        let Some(hit) = context.bvh.intersect(&ray) else {
+            continue;
+        };
+        let triangle = hit.triangle as usize;
+        let surface_normal = context.scene.mesh.geometric_normal(triangle);
+        if surface_normal.dot(direction) >= 0.0 {
+            continue;
+        }
+        let [a, b, c] = context.scene.mesh.vertices(triangle);
+        let point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+        let irradiance = direct.irradiance(&lights, point, surface_normal, sample as u64)
+            + context
+                .atlas
+                .sample(reference_lightmap, hit.triangle, hit.barycentric);
+        let radiance = context.scene.albedo_at(triangle, hit.barycentric)
+            * irradiance
+            * std::f32::consts::FRAC_1_PI;
+        relight_core::sh::evaluate(direction, bands, &mut basis);
+        for (sum, value) in sums.iter_mut().zip(&basis) {
+            for channel in 0..3 {
+                sum[channel] += radiance[channel] * value;
+            }
+        }
+    }
+    let scale = 2.0 * std::f32::consts::PI / samples as f32;
+    sums.iter()
+        .map(|sum| sum.map(|value| value * scale))
+        .collect()
+}
+
+/// Radiance transport (the original paper's glossy extension) against
+/// path-traced incident radiance: glossy reflection at receivers of the
+/// glossy white surfaces, seen from three directions, with the Phong lobe
+/// cut to the same three bands in both, at order 7 with 64 probes. It must beat the probe blend that
+/// glossy reflection falls back to without it (no parallax, no visibility
+/// from the hit points), and stay within a bound.
+#[test]
+fn radiance_transport_follows_path_traced_incident_radiance() {
+    let context = glossy_cornell();
+    let receivers = &context.atlas.receivers;
+    let atlas = &context.atlas;
+    let reference_values = reference(&context, 512);
+    let mut reference_lightmap = vec![Rgb::ZERO; (atlas.width * atlas.height) as usize];
+    for (receiver, value) in reference_values.iter().enumerate() {
+        let [x, y] = receivers.texels[receiver];
+        reference_lightmap[(y * atlas.width + x) as usize] = *value;
+    }
+    for &(target, source) in &atlas.dilation {
+        reference_lightmap[target as usize] = reference_lightmap[source as usize];
+    }
+    let common = [
+        ("order", "7"),
+        ("probe_count", "64"),
+        ("samples", "256"),
+        ("specular", "1"),
+    ];
+    let with_order = |radiance_order: &str| {
+        let mut params = common.to_vec();
+        params.push(("radiance_order", radiance_order));
+        params.push(("radiance_samples", "2048"));
+        srp(&context, &params)
+    };
+    let transported = with_order("2");
+    let blended = with_order("0");
+    let facts = transported.bake_facts();
+    let glossy_count = facts
+        .iter()
+        .find(|(name, _)| *name == "srp radiance transport")
+        .map(|(_, text)| text.clone())
+        .unwrap();
+    println!("{glossy_count}");
+    let lobe = relight_core::sh::phong_band_factors(8.0);
+    let glossy: Vec<usize> = (0..receivers.len())
+        .filter(|&r| {
+            context
+                .scene
+                .material_of(receivers.triangles[r] as usize)
+                .phong_exponent
+                > 1.0
+        })
+        .collect();
+    assert!(glossy.len() > 1000, "{} glossy receivers", glossy.len());
+    let (mut reference_glossy, mut transported_glossy, mut blended_glossy) =
+        (Vec::new(), Vec::new(), Vec::new());
+    let mut half_difference = Vec::new();
+    for &receiver in glossy.iter().step_by(glossy.len() / 120) {
+        let normal = receivers.normals[receiver];
+        // Two independent halves: their mean is the reference, their
+        // difference measures its noise.
+        let halves = [1u64, 2].map(|seed| {
+            reference_incident_sh(&context, &reference_lightmap, receiver, 3, 1024, seed)
+        });
+        let (tangent, _) = relight_core::sampling::orthonormal_basis(normal);
+        let point = relight_technique::SurfacePoint {
+            position: receivers.positions[receiver],
+            normal,
+            triangle: receivers.triangles[receiver],
+            barycentric: receivers.barycentrics[receiver],
+        };
+        for toward_viewer in [
+            normal,
+            (normal + tangent).normalize(),
+            (normal - tangent).normalize(),
+        ] {
+            let reflected = (-toward_viewer).reflect(normal);
+            let mut basis = [0.0f32; 9];
+            relight_core::sh::evaluate(reflected, 3, &mut basis);
+            let glossy_of = |sh: &[[f32; 3]]| {
+                let mut value = Rgb::ZERO;
+                for (index, coefficient) in sh.iter().enumerate() {
+                    let band = (index as f32).sqrt() as usize;
+                    for channel in 0..3 {
+                        value[channel] += lobe[band] * basis[index] * coefficient[channel];
+                    }
+                }
+                value
+            };
+            let [first, second] = [glossy_of(&halves[0]), glossy_of(&halves[1])];
+            reference_glossy.push(((first + second) * 0.5).max(Rgb::ZERO));
+            half_difference.push((first - second) * 0.5);
+            transported_glossy.push(
+                transported
+                    .glossy_radiance(&point, toward_viewer, 8.0)
+                    .unwrap(),
+            );
+            blended_glossy.push(blended.glossy_radiance(&point, toward_viewer, 8.0).unwrap());
+        }
+    }
+    let transport_error = error_norms(&transported_glossy, &reference_glossy).relative_rmse;
+    let blend_error = error_norms(&blended_glossy, &reference_glossy).relative_rmse;
+    // The reference's own noise: half the halves' difference is the
+    // standard error of their mean.
+    let shifted: Vec<Rgb> = reference_glossy
+        .iter()
+        .zip(&half_difference)
+        .map(|(value, difference)| *value + *difference)
+        .collect();
+    let noise = error_norms(&shifted, &reference_glossy).relative_rmse;
+    println!(
+        "glossy reflection against path-traced incident radiance (3 bands, {} lookups): radiance transport {:.1} %, probe blend {:.1} %, reference noise {:.1} %",
+        reference_glossy.len(),
+        transport_error * 100.0,
+        blend_error * 100.0,
+        noise * 100.0
+    );
+    // Measured 8.0 % against 36.4 %, with the reference 2.3 % noisy
+    // (and its indirect lightmap, 512 paths, noisier still). What remains
+    // is the method's own error (probe interpolation, 2048 transport
+    // samples, f16 compression to 64 vectors per cluster of 113 receivers).
+    // The bounds leave room for that, not for losing the parallax and
+    // visibility that the probe blend lacks.
+    assert!(transport_error < 0.12, "{transport_error}");
+    assert!(
+        transport_error < 0.5 * blend_error,
+        "{transport_error} vs {blend_error}"
+    );
 }
