@@ -319,8 +319,14 @@ pub fn count_short_receivers(
         .count()
 }
 
-/// Adds probes above receivers that see too few, a spread-out batch per
-/// round, until none is short or the budget is spent. Returns (probes
+/// Candidate positions and short receivers judging them, per coverage
+/// round.
+const COVERAGE_CANDIDATES: usize = 2048;
+const COVERAGE_JUDGES: usize = 8192;
+const COVERAGE_ROUNDS: usize = 12;
+
+/// Adds probes above receivers that see too few, a spread-out batch of the
+/// most useful per round, until none is short or the budget is spent. Returns (probes
 /// added, receivers still short).
 fn cover_receivers(
     context: &SceneContext,
@@ -331,7 +337,7 @@ fn cover_receivers(
 ) -> (usize, usize) {
     let receivers = &context.atlas.receivers;
     let mut added = 0usize;
-    for _round in 0..8 {
+    for _round in 0..COVERAGE_ROUNDS {
         let counts = visible_counts(context, probes, radius);
         let short: Vec<usize> = (0..receivers.len())
             .filter(|&index| counts[index] < settings.min_probes)
@@ -339,21 +345,54 @@ fn cover_receivers(
         if short.is_empty() || added >= settings.max_added {
             return (added, short.len());
         }
+        // Candidates above (a spread sample of) the short receivers, ranked
+        // by how many short receivers within the radius would see them: a
+        // probe in an arcade helps the receivers around it, one hung beside
+        // a column helps few. Gains are counted on a strided sample of the
+        // short receivers, which ranks them the same for far less work.
         let candidates: Vec<Vec3> = short
             .iter()
+            .step_by(short.len().div_ceil(COVERAGE_CANDIDATES))
             .map(|&index| candidate_above(context, receivers, index, height.min(0.5 * radius)))
+            .filter(|&candidate| !is_inside_geometry(context, candidate))
             .collect();
-        // A spread batch: short receivers cluster, and one new probe serves
-        // every receiver within the radius of it.
-        let budget = (settings.max_added - added).min(candidates.len());
-        let (order, _) = farthest_points(&candidates, budget);
+        let judged: Vec<usize> = short
+            .iter()
+            .step_by(short.len().div_ceil(COVERAGE_JUDGES))
+            .copied()
+            .collect();
+        let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+        let gains: Vec<usize> = candidates
+            .par_iter()
+            .map(|&candidate| {
+                judged
+                    .iter()
+                    .filter(|&&index| {
+                        let position = receivers.positions[index];
+                        let normal = receivers.normals[index];
+                        position.distance(candidate) < radius
+                            && (candidate - position).dot(normal) > 0.0
+                            && receiver_sees_probe(context, position, normal, candidate, epsilon)
+                    })
+                    .count()
+            })
+            .collect();
+        let mut order: Vec<usize> = (0..candidates.len()).filter(|&i| gains[i] > 0).collect();
+        order.sort_by_key(|&index| (std::cmp::Reverse(gains[index]), index));
+        // A spread batch: one new probe serves every receiver within the
+        // radius of it, so the next pick stands apart from the last.
+        // Quarter batches: gains are recounted after each, so later picks
+        // see what earlier ones already cover.
+        let budget = (settings.max_added - added).min(settings.max_added.div_ceil(4));
         let mut batch: Vec<Vec3> = Vec::new();
         for index in order {
             let candidate = candidates[index];
+            if batch.len() >= budget {
+                break;
+            }
             if batch
                 .iter()
                 .any(|other| other.distance(candidate) < 0.5 * radius)
-                || is_inside_geometry(context, candidate)
             {
                 continue;
             }

@@ -552,7 +552,7 @@ fn radiance_transport_follows_path_traced_incident_radiance() {
         blend_error * 100.0,
         noise * 100.0
     );
-    // Measured 8.0 % against 36.4 %, with the reference 2.3 % noisy
+    // Measured 8.2 % against 36.5 %, with the reference 2.3 % noisy
     // (and its indirect lightmap, 512 paths, noisier still). What remains
     // is the method's own error (probe interpolation, 2048 transport
     // samples, f16 compression to 64 vectors per cluster of 113 receivers).
