@@ -416,7 +416,11 @@ impl Pic {
         let inverse_scale = 1.0 / bake.factor_scale;
         let stride = self.stride;
         let fast = bands <= 4 && bake.projected_bands == 0 && kernels_available();
-        let projected_fast = bands <= 4 && projected_kernel_available();
+        let projected_kernel: ProjectedKernel = if bands <= 4 && projected_kernel_available() {
+            light_cache_projected_avx2
+        } else {
+            light_cache_projected
+        };
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
@@ -432,22 +436,10 @@ impl Pic {
                         let coefficients =
                             &bake.link_coefficients[range.start * count..range.end * count];
                         let nodes = &bake.link_nodes[range];
-                        if projected_fast {
-                            // SAFETY: `projected_kernel_available` checked the CPU.
-                            unsafe {
-                                light_cache_projected_avx2(
-                                    coefficients,
-                                    nodes,
-                                    flux,
-                                    count,
-                                    chroma_count,
-                                    luma,
-                                    co,
-                                    cg,
-                                )
-                            };
-                        } else {
-                            light_cache_projected(
+                        // SAFETY: the vector kernel is picked only where
+                        // `projected_kernel_available` found the CPU has it.
+                        unsafe {
+                            projected_kernel(
                                 coefficients,
                                 nodes,
                                 flux,
@@ -456,8 +448,8 @@ impl Pic {
                                 luma,
                                 co,
                                 cg,
-                            );
-                        }
+                            )
+                        };
                     } else {
                         let slice = LinkSlice {
                             nodes: &bake.link_nodes[range.clone()],
@@ -589,6 +581,10 @@ unsafe fn light_cache_avx2(
         _ => kernels::light_cache_general(links, flux, bands, chroma, luma, co, cg),
     }
 }
+
+/// The signature both projected-link kernels share.
+type ProjectedKernel =
+    unsafe fn(&[u16], &[u32], &[Vec3], usize, usize, &mut [f32], &mut [f32], &mut [f32]);
 
 /// Projected links: coefficients times flux, `count` coefficients per link.
 #[allow(clippy::too_many_arguments)]

@@ -53,12 +53,20 @@ fn pairs(list: &[(&str, &str)]) -> Vec<(String, String)> {
 }
 
 fn pic(context: &Arc<SceneContext>, params: &[(&str, &str)]) -> Box<dyn Technique> {
-    let params = pairs(params);
     let bake = PicKind
-        .bake(context, &params, &NoProgress)
+        .bake(context, &pairs(params), &NoProgress)
         .expect("PIC bakes");
+    load_and_update(context, &bake, params)
+}
+
+/// PIC from `bake` with run-time `params`, after one update.
+fn load_and_update(
+    context: &Arc<SceneContext>,
+    bake: &[u8],
+    params: &[(&str, &str)],
+) -> Box<dyn Technique> {
     let mut technique = PicKind
-        .create(context.clone(), Some(&bake), &params, &NoProgress)
+        .create(context.clone(), Some(bake), &pairs(params), &NoProgress)
         .expect("PIC loads its bake");
     let lights = context.scene.lights.clone();
     technique
@@ -425,16 +433,7 @@ fn runs_with_the_bands_it_was_baked_for() {
         .bake(&context, &baked, &NoProgress)
         .expect("PIC bakes");
     let run = |params: &[(&str, &str)]| {
-        let mut technique = PicKind
-            .create(context.clone(), Some(&bake), &pairs(params), &NoProgress)
-            .expect("PIC loads its bake");
-        let lights = context.scene.lights.clone();
-        technique
-            .update(&Frame {
-                lights: &lights,
-                index: 0,
-            })
-            .expect("update");
+        let technique = load_and_update(&context, &bake, params);
         let facts = technique.bake_facts();
         let bands = facts
             .iter()

@@ -436,14 +436,9 @@ impl SrpBake {
         {
             return Err("a probe sample names a texel that does not exist");
         }
-        let monotonic = |offsets: &[u32], total: usize| {
-            offsets.first() == Some(&0)
-                && offsets.windows(2).all(|pair| pair[0] <= pair[1])
-                && offsets.last().map(|&last| last as usize) == Some(total)
-        };
         if self.receiver_offsets.len() != self.probe_offsets.len()
-            || !monotonic(&self.receiver_offsets, self.cluster_receivers.len())
-            || !monotonic(&self.probe_offsets, self.cluster_probes.len())
+            || !offsets_are_monotonic(&self.receiver_offsets, self.cluster_receivers.len())
+            || !offsets_are_monotonic(&self.probe_offsets, self.cluster_probes.len())
         {
             return Err("cluster offsets are inconsistent");
         }
@@ -489,14 +484,9 @@ impl SrpBake {
         if radiance.bands > MAX_RADIANCE_BANDS {
             return Err("radiance transport bands outside 1..=5");
         }
-        let monotonic = |offsets: &[u32], total: usize| {
-            offsets.first() == Some(&0)
-                && offsets.windows(2).all(|pair| pair[0] <= pair[1])
-                && offsets.last().map(|&last| last as usize) == Some(total)
-        };
         if radiance.receiver_offsets.len() != radiance.probe_offsets.len()
-            || !monotonic(&radiance.receiver_offsets, radiance.receivers.len())
-            || !monotonic(&radiance.probe_offsets, radiance.cluster_probes.len())
+            || !offsets_are_monotonic(&radiance.receiver_offsets, radiance.receivers.len())
+            || !offsets_are_monotonic(&radiance.probe_offsets, radiance.cluster_probes.len())
         {
             return Err("radiance cluster offsets are inconsistent");
         }
@@ -523,6 +513,13 @@ impl SrpBake {
         }
         Ok(())
     }
+}
+
+/// Cluster offsets start at 0, never fall and end at `total`.
+fn offsets_are_monotonic(offsets: &[u32], total: usize) -> bool {
+    offsets.first() == Some(&0)
+        && offsets.windows(2).all(|pair| pair[0] <= pair[1])
+        && offsets.last().map(|&last| last as usize) == Some(total)
 }
 
 /// The original paper kept radiance transport at order 4 (25

@@ -24,7 +24,10 @@ fn scene_path(name: &str) -> std::path::PathBuf {
 }
 
 fn context(name: &str) -> Arc<SceneContext> {
-    let scene = relight_scene::load_scene(&scene_path(name)).expect("shipped scene loads");
+    context_of(relight_scene::load_scene(&scene_path(name)).expect("shipped scene loads"))
+}
+
+fn context_of(scene: relight_scene::Scene) -> Arc<SceneContext> {
     Arc::new(
         SceneContext::new(
             scene,
@@ -362,16 +365,7 @@ fn glossy_cornell() -> Arc<SceneContext> {
             material.phong_exponent = 8.0;
         }
     }
-    Arc::new(
-        SceneContext::new(
-            scene,
-            ContextSettings {
-                lightmap: TexelDensity::from_resolution(None),
-                ..ContextSettings::default()
-            },
-        )
-        .expect("context"),
-    )
+    context_of(scene)
 }
 
 /// Path-traced incident radiance at a receiver, projected on SH of
