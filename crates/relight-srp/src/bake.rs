@@ -418,6 +418,9 @@ impl SrpBake {
         if !(1..=sh::MAX_BANDS).contains(&self.bands) {
             return Err("SH bands outside 1..=8");
         }
+        if self.rank == 0 {
+            return Err("no principal vectors per cluster");
+        }
         if self.radius.is_nan() || self.radius <= 0.0 {
             return Err("the cut-off radius is not positive");
         }
@@ -483,6 +486,9 @@ impl SrpBake {
         }
         if radiance.bands > MAX_RADIANCE_BANDS {
             return Err("radiance transport bands outside 1..=5");
+        }
+        if radiance.rank == 0 {
+            return Err("no principal vectors per radiance cluster");
         }
         if radiance.receiver_offsets.len() != radiance.probe_offsets.len()
             || !offsets_are_monotonic(&radiance.receiver_offsets, radiance.receivers.len())

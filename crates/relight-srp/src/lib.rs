@@ -101,7 +101,9 @@ pub mod probes;
 mod runtime;
 pub mod transport;
 
-pub use bake::{cluster_transport, sample_directions, BakeStats, SrpBake, BACK_FACE, ESCAPED};
+pub use bake::{
+    cluster_transport, sample_directions, BakeStats, RadianceTransport, SrpBake, BACK_FACE, ESCAPED,
+};
 pub use runtime::{RuntimeSettings, Srp};
 
 use relight_technique::{
