@@ -83,17 +83,22 @@ impl Pic {
             None
         };
         let atlas = own_atlas.as_ref().unwrap_or(&context.atlas);
-        if atlas.receivers.len() != bake.caches.lightmap_count
-            || bake
-                .surfels
-                .triangles
-                .iter()
-                .any(|&t| t as usize >= context.scene.mesh.triangles.len())
-        {
+        if atlas.receivers.len() != bake.caches.lightmap_count {
             return Err(TechniqueError::Other(format!(
                 "this PIC bake has {} lightmap caches but the scene's cache atlas has {} texels: bake again for this scene and lightmap resolution",
                 bake.caches.lightmap_count,
                 atlas.receivers.len()
+            )));
+        }
+        let triangle_count = context.scene.mesh.triangles.len();
+        if let Some(&triangle) = bake
+            .surfels
+            .triangles
+            .iter()
+            .find(|&&t| t as usize >= triangle_count)
+        {
+            return Err(TechniqueError::Other(format!(
+                "this PIC bake puts a surfel on triangle {triangle}, but the scene has {triangle_count} triangles: bake again for this scene"
             )));
         }
         let mut cache_of_texel = atlas.receiver_of_texel.clone();

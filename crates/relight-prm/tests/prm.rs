@@ -193,6 +193,24 @@ fn corrupt_payloads_are_errors_not_panics() {
     assert!(PrmBake::decode(&lying).is_err());
 }
 
+/// Bit flips and truncations of a bake are refused or run; none panics.
+#[test]
+fn damaged_bakes_never_panic() {
+    let context = context("cornell-box-point", 32);
+    let params: Vec<(String, String)> = [("entries", "256"), ("clusters", "16"), ("rank", "4")]
+        .iter()
+        .map(|(key, value)| (key.to_string(), value.to_string()))
+        .collect();
+    let bake = PrmKind.bake(&context, &params, &NoProgress).unwrap();
+    let (accepted, refused) = relight_technique::robustness::check_damaged_payloads(
+        &PrmKind, &context, &params, &bake, 300, 1,
+    );
+    assert!(
+        accepted > 0 && refused > 0,
+        "{accepted} accepted, {refused} refused"
+    );
+}
+
 #[test]
 fn oversized_bakes_are_refused_with_advice() {
     let context = context("cornell-box-point", 64);

@@ -575,3 +575,25 @@ fn radiance_transport_follows_path_traced_incident_radiance() {
         "{transport_error} vs {blend_error}"
     );
 }
+
+/// Damaged bakes (bit flips, truncations), radiance transport included,
+/// are refused or run; none panics.
+#[test]
+fn damaged_bakes_never_panic() {
+    let context = glossy_cornell();
+    let params = pairs(&[
+        ("samples", "8"),
+        ("order", "1"),
+        ("probe_samples", "64"),
+        ("radiance_order", "1"),
+        ("radiance_samples", "8"),
+    ]);
+    let bake = SrpKind.bake(&context, &params, &NoProgress).unwrap();
+    let (accepted, refused) = relight_technique::robustness::check_damaged_payloads(
+        &SrpKind, &context, &params, &bake, 300, 1,
+    );
+    assert!(
+        accepted > 0 && refused > 0,
+        "{accepted} accepted, {refused} refused"
+    );
+}

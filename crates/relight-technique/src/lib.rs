@@ -18,6 +18,7 @@ mod context;
 mod interface;
 mod params;
 mod payload;
+pub mod robustness;
 
 pub use bakefile::{
     read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,
