@@ -23,7 +23,7 @@ pub fn check_damaged_payloads(
     let lights = context.scene.lights.clone();
     for mutation in 0..mutations {
         let mut bytes = payload.to_vec();
-        if rng.next_u32() % 8 == 0 {
+        if rng.next_u32().is_multiple_of(8) {
             bytes.truncate(rng.next_u32() as usize % bytes.len().max(1));
         } else {
             for _ in 0..1 + rng.next_u32() % 4 {
