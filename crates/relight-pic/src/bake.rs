@@ -44,6 +44,17 @@ pub struct PicBake {
     pub cache_bands: [u32; 2],
 }
 
+/// The power of two that brings `largest` into [8192, 16384), the top
+/// octave of f16 below 32768, so that scaled values stay normal f16 numbers
+/// with room to spare; 0 for nothing to scale.
+fn scale_exponent(largest: f32) -> i32 {
+    if largest > 0.0 {
+        (16384.0 / largest).log2().floor() as i32
+    } else {
+        0
+    }
+}
+
 impl PicBake {
     pub fn build(
         context: &SceneContext,
@@ -116,11 +127,25 @@ impl PicBake {
             LinkForm::Runtime => 0,
         };
         progress.start("linking caches", cache_count as u64);
-        // Per cache: nodes, (factor, 1 - cos, direction) and coefficients, in f32.
-        type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, Vec<f32>);
-        let per_cache: Vec<CacheLinks> = (0..cache_count)
+        // SH-projected coefficients go straight into their final place as
+        // f16 at a power-of-two scale of each cache's own; once the largest
+        // value of all is known they are rescaled in place to the common
+        // scale (exact for every value that stays a normal f16). Holding
+        // them all in f32 first doubled the high preset's bake memory.
+        let chunk = links_per_cache * coefficient_count;
+        let mut link_coefficients = vec![0u16; cache_count * chunk];
+        let coefficient_chunks: Vec<&mut [u16]> = if chunk > 0 {
+            link_coefficients.chunks_mut(chunk).collect()
+        } else {
+            (0..cache_count).map(|_| Default::default()).collect()
+        };
+        // Per cache: nodes, (factor, 1 - cos, direction), and the scale
+        // exponent and largest magnitude of its coefficients.
+        type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, i32, f32);
+        let per_cache: Vec<CacheLinks> = coefficient_chunks
             .into_par_iter()
-            .map(|cache| {
+            .enumerate()
+            .map(|(cache, stored)| {
                 let position = caches.positions[cache];
                 let normal = caches.normals[cache];
                 let nodes = senders.cut(cache as u64, position, normal, &settings);
@@ -150,26 +175,41 @@ impl PicBake {
                         ),
                     }
                 }
+                let largest = coefficients.iter().fold(0.0f32, |m, c| m.max(c.abs()));
+                let exponent = scale_exponent(largest);
+                for (slot, value) in coefficients.iter().enumerate() {
+                    stored[slot] = half::f16::from_f32(value * 2f32.powi(exponent)).to_bits();
+                }
                 progress.advance(1);
-                (nodes, runtime, coefficients)
+                (nodes, runtime, exponent, largest)
             })
             .collect();
         progress.finish();
         // One power-of-two scale keeps every factor a normal f16.
         let largest = per_cache
             .iter()
-            .flat_map(|(_, runtime, coefficients)| {
+            .flat_map(|(_, runtime, _, largest)| {
                 runtime
                     .iter()
                     .map(|(factor, _, _)| factor.abs())
-                    .chain(coefficients.iter().map(|c| c.abs()))
+                    .chain(std::iter::once(*largest))
             })
             .fold(0.0f32, f32::max);
-        let factor_scale = if largest > 0.0 {
-            2f32.powi((16384.0 / largest).log2().floor() as i32)
-        } else {
-            1.0
-        };
+        let common_exponent = scale_exponent(largest);
+        let factor_scale = 2f32.powi(common_exponent);
+        if chunk > 0 {
+            link_coefficients
+                .par_chunks_mut(chunk)
+                .zip(&per_cache)
+                .for_each(|(stored, (_, _, exponent, _))| {
+                    // The common scale is at most the cache's own.
+                    let rescale = 2f32.powi(common_exponent - exponent);
+                    for bits in stored {
+                        let value = half::f16::from_bits(*bits).to_f32() * rescale;
+                        *bits = half::f16::from_f32(value).to_bits();
+                    }
+                });
+        }
         let total = cache_count * links_per_cache;
         let mut bake = PicBake {
             surfels,
@@ -182,7 +222,7 @@ impl PicBake {
             link_factors: Vec::new(),
             link_cones: Vec::new(),
             link_directions: Vec::new(),
-            link_coefficients: vec![0; total * coefficient_count],
+            link_coefficients,
             factor_scale,
             hierarchy_builder: (params.hierarchy == "kd") as u32,
             enclosed_surfels: enclosed as u32,
@@ -197,17 +237,13 @@ impl PicBake {
             bake.link_cones = vec![0; total];
             bake.link_directions = vec![[0; 2]; total];
         }
-        for (cache, (nodes, runtime, coefficients)) in per_cache.into_iter().enumerate() {
+        for (cache, (nodes, runtime, _, _)) in per_cache.into_iter().enumerate() {
             let base = cache * links_per_cache;
             bake.link_nodes[base..base + nodes.len()].copy_from_slice(&nodes);
             for (slot, (factor, cone, direction)) in runtime.into_iter().enumerate() {
                 bake.link_factors[base + slot] = half(factor * factor_scale);
                 bake.link_cones[base + slot] = half(cone);
                 bake.link_directions[base + slot] = octahedral_encode(direction);
-            }
-            for (slot, value) in coefficients.into_iter().enumerate() {
-                bake.link_coefficients[base * coefficient_count + slot] =
-                    half(value * factor_scale);
             }
         }
         Ok(bake)

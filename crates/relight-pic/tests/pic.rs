@@ -186,19 +186,24 @@ fn hierarchies_are_consistent() {
 #[test]
 fn bake_is_deterministic_across_thread_counts() {
     let context = context("cornell-box-point");
-    let params = pairs(&[
-        ("surfels", "4000"),
-        ("links", "32"),
-        ("lightmap_caches", "2000"),
-    ]);
-    let bake_on = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| PicKind.bake(&context, &params, &NoProgress).unwrap())
-    };
-    assert_eq!(bake_on(1), bake_on(3));
+    // Both link forms: projected coefficients are scaled per cache and
+    // rescaled in place once every cache is done.
+    for projected in ["false", "true"] {
+        let params = pairs(&[
+            ("surfels", "4000"),
+            ("links", "32"),
+            ("lightmap_caches", "2000"),
+            ("projected", projected),
+        ]);
+        let bake_on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| PicKind.bake(&context, &params, &NoProgress).unwrap())
+        };
+        assert_eq!(bake_on(1), bake_on(3), "projected = {projected}");
+    }
 }
 
 /// Corrupt payloads fail with a message, never a panic.
