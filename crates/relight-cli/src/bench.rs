@@ -2,9 +2,12 @@
 //! `relight bench-rays`: BVH throughput.
 
 use anyhow::Result;
-use glam::{Quat, Vec3};
+use glam::{Quat, Vec2, Vec3};
+use rayon::prelude::*;
+use relight_core::Rgb;
 use relight_scene::Light;
-use relight_technique::{Frame, Progress, SceneContext, Technique};
+use relight_technique::{Frame, Progress, SceneContext, SurfacePoint, Technique};
+use relight_trace::path::CameraRays;
 use serde::Serialize;
 use std::fmt;
 use std::path::Path;
@@ -28,6 +31,11 @@ pub struct BenchReport {
     pub receivers: usize,
     pub stages: Vec<StageReport>,
     pub total: StageReport,
+    /// Indirect light (diffuse, plus glossy where the material and the
+    /// technique have it) at every pixel of the camera's view that sees the
+    /// static scene; apart from `total`, which is the GI update alone.
+    pub shading: Option<StageReport>,
+    pub shaded_points: usize,
     pub memory: Vec<(String, usize)>,
     pub memory_total_bytes: usize,
 }
@@ -61,13 +69,83 @@ fn stage_report(stage: &str, mut samples: Vec<f64>) -> StageReport {
     }
 }
 
+/// A static-scene point the camera sees: the surface, the direction back to
+/// the camera, and the material's Phong exponent.
+struct ShadedPoint {
+    surface: SurfacePoint,
+    toward_viewer: Vec3,
+    exponent: f32,
+}
+
+/// One point per pixel centre of the scene's camera at `resolution`, where
+/// the pixel sees the front of a surface (the lightmap holds front sides).
+fn camera_points(context: &SceneContext, resolution: [u32; 2]) -> Vec<ShadedPoint> {
+    let mut camera = context.scene.camera.clone();
+    camera.resolution = resolution;
+    let rays = CameraRays::new(&camera);
+    let scene = &context.scene;
+    (0..resolution[0] * resolution[1])
+        .into_par_iter()
+        .filter_map(|pixel| {
+            let ray = rays.ray(
+                pixel % resolution[0],
+                pixel / resolution[0],
+                Vec2::splat(0.5),
+            );
+            let hit = context.bvh.intersect(&ray)?;
+            let triangle = hit.triangle as usize;
+            let normal = scene.mesh.geometric_normal(triangle);
+            if normal.dot(ray.direction) >= 0.0 {
+                return None;
+            }
+            let [a, b, c] = scene.mesh.vertices(triangle);
+            Some(ShadedPoint {
+                surface: SurfacePoint {
+                    position: a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y,
+                    normal,
+                    triangle: hit.triangle,
+                    barycentric: hit.barycentric,
+                },
+                toward_viewer: -ray.direction,
+                exponent: scene.material_of(triangle).phong_exponent,
+            })
+        })
+        .collect()
+}
+
+/// Shades every point from the technique's current state, in parallel.
+fn shade(technique: &dyn Technique, points: &[ShadedPoint], out: &mut [Rgb]) {
+    out.par_iter_mut().zip(points).for_each(|(value, point)| {
+        let mut indirect = technique.indirect_irradiance(&point.surface);
+        if point.exponent > 1.0 {
+            if let Some(glossy) =
+                technique.glossy_radiance(&point.surface, point.toward_viewer, point.exponent)
+            {
+                indirect += glossy;
+            }
+        }
+        *value = indirect;
+    });
+}
+
+/// `shading_resolution` picks the shading stage's image size (`None`: the
+/// scene camera's; a zero side: no shading stage).
 pub fn run(
     context: &SceneContext,
     technique: &mut dyn Technique,
     frames: u32,
+    shading_resolution: Option<[u32; 2]>,
     progress: &dyn Progress,
 ) -> Result<BenchReport> {
     let frames = frames.max(1);
+    let resolution = shading_resolution.unwrap_or(context.scene.camera.resolution);
+    let points = if resolution.contains(&0) {
+        Vec::new()
+    } else {
+        camera_points(context, resolution)
+    };
+    let mut shaded = vec![Rgb::ZERO; points.len()];
+    let mut shading_samples = Vec::with_capacity(frames as usize);
     let (lo, hi) = context.scene.mesh.bounds();
     let centre = (lo + hi) * 0.5;
     let base = &context.scene.lights;
@@ -98,6 +176,11 @@ pub fn run(
             stage_samples[slot].push(duration.as_secs_f64() * 1e3);
         }
         totals.push(timings.total().as_secs_f64() * 1e3);
+        if !points.is_empty() {
+            let start = std::time::Instant::now();
+            shade(&*technique, &points, &mut shaded);
+            shading_samples.push(start.elapsed().as_secs_f64() * 1e3);
+        }
     }
     progress.finish();
     let memory: Vec<(String, usize)> = technique
@@ -117,6 +200,13 @@ pub fn run(
             .map(|(name, samples)| stage_report(name, samples))
             .collect(),
         total: stage_report("total", totals),
+        shading: (!points.is_empty()).then(|| {
+            stage_report(
+                &format!("shading {}x{}", resolution[0], resolution[1]),
+                shading_samples,
+            )
+        }),
+        shaded_points: points.len(),
         memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
         memory,
     })
@@ -135,6 +225,13 @@ impl fmt::Display for BenchReport {
                 f,
                 "{:<28} {:>12.3} {:>12.3}",
                 stage.stage, stage.median_ms, stage.p95_ms
+            )?;
+        }
+        if let Some(shading) = &self.shading {
+            writeln!(
+                f,
+                "{:<28} {:>12.3} {:>12.3}   (not in total; {} pixels see the static scene)",
+                shading.stage, shading.median_ms, shading.p95_ms, self.shaded_points
             )?;
         }
         writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;

@@ -139,6 +139,11 @@ enum Command {
         options: SceneOptions,
         #[arg(long, default_value_t = 100)]
         frames: u32,
+        /// Image size of the shading stage, WIDTHxHEIGHT (the paper's Table
+        /// 2 used 1920x1080); default: the scene camera's; 0x0: no shading
+        /// stage.
+        #[arg(long, value_parser = parse_resolution)]
+        shading_resolution: Option<[u32; 2]>,
         /// Also write the report as JSON.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -468,11 +473,18 @@ fn run(cli: Cli) -> Result<()> {
             technique,
             options,
             frames,
+            shading_resolution,
             json,
         } => {
             let context = load_context(&scene, &options, quiet)?;
             let mut instance = create_technique(&context, &technique, quiet)?;
-            let report = bench::run(&context, instance.as_mut(), frames, &Bars::new(quiet))?;
+            let report = bench::run(
+                &context,
+                instance.as_mut(),
+                frames,
+                shading_resolution,
+                &Bars::new(quiet),
+            )?;
             say!("{report}");
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_string_pretty(&report)?)
@@ -603,4 +615,20 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
         }
     }
     Ok(())
+}
+
+/// `WIDTHxHEIGHT`, for `--shading-resolution`.
+fn parse_resolution(text: &str) -> Result<[u32; 2], String> {
+    let parse = |side: &str| side.trim().parse::<u32>().ok();
+    match text.split_once(['x', 'X']) {
+        Some((width, height)) => match (parse(width), parse(height)) {
+            (Some(width), Some(height)) if (width == 0) == (height == 0) => Ok([width, height]),
+            _ => Err(format!(
+                "'{text}': expected WIDTHxHEIGHT, both positive (or 0x0 for no shading stage)"
+            )),
+        },
+        None => Err(format!(
+            "'{text}': expected WIDTHxHEIGHT, for example 1920x1080"
+        )),
+    }
 }

@@ -164,6 +164,27 @@ fn bench_writes_json_with_stages() {
     assert_eq!(value["stages"][0]["stage"], "direct lightmap");
     assert!(value["total"]["median_ms"].as_f64().unwrap() > 0.0);
     assert!(value["memory_total_bytes"].as_u64().unwrap() > 0);
+    // The corridor's camera is 320x240; most pixels see its walls.
+    assert_eq!(value["shading"]["stage"], "shading 320x240");
+    let shaded = value["shaded_points"].as_u64().unwrap();
+    assert!(shaded > 320 * 240 / 2 && shaded <= 320 * 240, "{shaded}");
+}
+
+#[test]
+fn bench_shading_resolution_is_checked() {
+    let error = run_err(
+        relight()
+            .args([
+                "bench",
+                "-q",
+                "--technique",
+                "direct",
+                "--shading-resolution",
+                "19x",
+            ])
+            .arg(scene("corridor")),
+    );
+    assert!(error.contains("WIDTHxHEIGHT"), "{error}");
 }
 
 #[test]
