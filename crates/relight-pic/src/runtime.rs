@@ -201,6 +201,19 @@ impl Pic {
     /// Irradiance (YCoCg) of `taps` for a surface whose A_l Y_lm(normal)
     /// is `basis`.
     fn irradiance_from_taps(&self, taps: &[(u32, f32)], basis: &[f32]) -> Vec3 {
+        // Four taps (the lightmap's) and a common row length take the
+        // branch-free path that the surfel feedback uses too.
+        if let Ok(four) = <&[(u32, f32); 4]>::try_from(taps) {
+            match self.stride {
+                12 => return self.irradiance_from_four::<12>(four, basis),
+                17 => return self.irradiance_from_four::<17>(four, basis),
+                24 => return self.irradiance_from_four::<24>(four, basis),
+                27 => return self.irradiance_from_four::<27>(four, basis),
+                34 => return self.irradiance_from_four::<34>(four, basis),
+                48 => return self.irradiance_from_four::<48>(four, basis),
+                _ => {}
+            }
+        }
         let luma = self.settings.bands * self.settings.bands;
         let chroma = self.settings.chroma_bands * self.settings.chroma_bands;
         // Blend the taps' rows first, then one dot product per channel:
@@ -283,9 +296,7 @@ impl Pic {
         });
     }
 
-    /// `feedback_irradiance` for a cache row of `STRIDE` floats: the four
-    /// taps blend in one pass with no branch and no cleared scratch (a
-    /// missing tap reads a zero row with weight 0), which runs once per
+    /// `feedback_irradiance` for a cache row of `STRIDE` floats, once per
     /// surfel per frame, in AVX2 where the CPU has it.
     fn feedback_irradiance_fixed<const STRIDE: usize>(&self, out: &mut [Vec3]) {
         const SURFELS_PER_TASK: usize = 1024;
@@ -312,6 +323,26 @@ impl Pic {
     #[inline(always)]
     fn feedback_chunk<const STRIDE: usize>(&self, first: usize, out: &mut [Vec3]) {
         let luma = self.settings.bands * self.settings.bands;
+        for (offset, value) in out.iter_mut().enumerate() {
+            let index = first + offset;
+            *value = self.irradiance_from_four::<STRIDE>(
+                &self.surfel_taps[index],
+                &self.surfel_basis[index * luma..(index + 1) * luma],
+            );
+        }
+    }
+
+    /// Irradiance (YCoCg) of four taps on cache rows of `STRIDE` floats for
+    /// a surface whose band-weighted basis is `basis`: the taps blend in
+    /// one pass with no branch and no cleared scratch (a missing tap reads
+    /// a zero row with weight 0), then one dot product per channel.
+    #[inline(always)]
+    fn irradiance_from_four<const STRIDE: usize>(
+        &self,
+        taps: &[(u32, f32); 4],
+        basis: &[f32],
+    ) -> Vec3 {
+        let luma = self.settings.bands * self.settings.bands;
         let chroma = self.settings.chroma_bands * self.settings.chroma_bands;
         let zero = [0.0f32; STRIDE];
         let row = |(cache, weight): (u32, f32)| -> (&[f32; STRIDE], f32) {
@@ -324,23 +355,19 @@ impl Pic {
                 weight,
             )
         };
-        for (offset, value) in out.iter_mut().enumerate() {
-            let index = first + offset;
-            let [(r0, w0), (r1, w1), (r2, w2), (r3, w3)] = self.surfel_taps[index].map(row);
-            // A plain loop, not `array::from_fn`, whose closure is not
-            // inlined into the AVX2 instance.
-            let mut blended = [0.0f32; STRIDE];
-            for (k, sum) in blended.iter_mut().enumerate() {
-                *sum = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k];
-            }
-            let basis = &self.surfel_basis[index * luma..(index + 1) * luma];
-            let (luma_row, chroma_rows) = blended.split_at(luma);
-            *value = Vec3::new(
-                dot(luma_row, basis),
-                dot(&chroma_rows[..chroma], &basis[..chroma]),
-                dot(&chroma_rows[chroma..2 * chroma], &basis[..chroma]),
-            );
+        let [(r0, w0), (r1, w1), (r2, w2), (r3, w3)] = taps.map(row);
+        // A plain loop, not `array::from_fn`, whose closure is not inlined
+        // into the AVX2 instance of the feedback.
+        let mut blended = [0.0f32; STRIDE];
+        for (k, sum) in blended.iter_mut().enumerate() {
+            *sum = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k];
         }
+        let (luma_row, chroma_rows) = blended.split_at(luma);
+        Vec3::new(
+            dot(luma_row, &basis[..luma]),
+            dot(&chroma_rows[..chroma], &basis[..chroma]),
+            dot(&chroma_rows[chroma..2 * chroma], &basis[..chroma]),
+        )
     }
 
     fn direct_light(&mut self, frame: &Frame) {
