@@ -9,7 +9,7 @@
 
 use relight_core::{luminance, Rgb};
 use relight_pic::{PicKind, BAKE_PARAMETERS};
-use relight_render::study::run_study;
+use relight_render::study::{print_receiver, run_study};
 use relight_technique::SceneContext;
 
 fn detail(context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb]) {
@@ -32,14 +32,7 @@ fn detail(context: &SceneContext, _bake: &[u8], values: &[Rgb], reference: &[Rgb
                 (pa.y, pa.x, pa.z).partial_cmp(&(pb.y, pb.x, pb.z)).unwrap()
             });
             for i in list {
-                println!(
-                    "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
-                    i,
-                    receivers.positions[i],
-                    receivers.normals[i],
-                    luminance(values[i]),
-                    luminance(reference[i])
-                );
+                print_receiver(context, i, values, reference);
             }
         }
     }

@@ -101,10 +101,7 @@ impl Pic {
                 "this PIC bake puts a surfel on triangle {triangle}, but the scene has {triangle_count} triangles: bake again for this scene"
             )));
         }
-        let mut cache_of_texel = atlas.receiver_of_texel.clone();
-        for &(target, source) in &atlas.dilation {
-            cache_of_texel[target as usize] = cache_of_texel[source as usize];
-        }
+        let cache_of_texel = atlas.dilated_receiver_of_texel();
         let coefficients = settings.bands * settings.bands;
         let stride = coefficients + 2 * settings.chroma_bands * settings.chroma_bands;
         let surfels = &bake.surfels;
@@ -448,11 +445,7 @@ impl Pic {
         let inverse_scale = 1.0 / bake.factor_scale;
         let stride = self.stride;
         let fast = bands <= 4 && bake.projected_bands == 0 && kernels_available();
-        let projected_kernel: ProjectedKernel = if bands <= 4 && projected_kernel_available() {
-            light_cache_projected_avx2
-        } else {
-            light_cache_projected
-        };
+        let projected_kernel = projected_kernel(bands);
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
@@ -468,8 +461,8 @@ impl Pic {
                         let coefficients =
                             &bake.link_coefficients[range.start * count..range.end * count];
                         let nodes = &bake.link_nodes[range];
-                        // SAFETY: the vector kernel is picked only where
-                        // `projected_kernel_available` found the CPU has it.
+                        // SAFETY: `projected_kernel` picks the vector kernel
+                        // only where the CPU has it.
                         unsafe {
                             projected_kernel(
                                 coefficients,
@@ -649,32 +642,20 @@ fn light_cache_projected(
     }
 }
 
-/// Only x86 has the vector kernel; elsewhere `projected_kernel_available`
-/// is false and this is never called.
-#[cfg(not(target_arch = "x86_64"))]
-#[allow(clippy::too_many_arguments)]
-unsafe fn light_cache_projected_avx2(
-    coefficients: &[u16],
-    nodes: &[u32],
-    flux: &[Vec3],
-    count: usize,
-    chroma_count: usize,
-    luma: &mut [f32],
-    co: &mut [f32],
-    cg: &mut [f32],
-) {
-    light_cache_projected(coefficients, nodes, flux, count, chroma_count, luma, co, cg)
+/// The projected-link kernel for `bands`: F16C and AVX2 where the CPU has
+/// them (up to 16 coefficients), the scalar loop elsewhere.
+fn projected_kernel(bands: usize) -> ProjectedKernel {
+    #[cfg(target_arch = "x86_64")]
+    if bands <= 4 && projected_kernel_available() {
+        return light_cache_projected_avx2;
+    }
+    let _ = bands;
+    light_cache_projected
 }
 
+#[cfg(target_arch = "x86_64")]
 fn projected_kernel_available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        kernels_available() && std::arch::is_x86_feature_detected!("f16c")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    kernels_available() && std::arch::is_x86_feature_detected!("f16c")
 }
 
 /// `light_cache_projected` for up to 16 coefficients: each link's f16 row

@@ -216,6 +216,21 @@ pub fn run_study(
 /// over texels nobody sees, and the error at receivers that relocation
 /// moved away from `unmoved` (their texel-centre positions) against the
 /// rest. Studies print it when `RELIGHT_STUDY_WORST` is set to a count.
+/// One line about receiver `index`: where it stands, its normal, and its
+/// luminance against the reference's.
+pub fn print_receiver(context: &SceneContext, index: usize, values: &[Rgb], reference: &[Rgb]) {
+    use relight_core::luminance;
+    let receivers = &context.atlas.receivers;
+    println!(
+        "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
+        index,
+        receivers.positions[index],
+        receivers.normals[index],
+        luminance(values[index]),
+        luminance(reference[index])
+    );
+}
+
 pub fn report_worst(
     context: &SceneContext,
     unmoved: &[glam::Vec3],
@@ -252,16 +267,8 @@ pub fn report_worst(
     let error = |i: usize| (luminance(values[i]) - luminance(reference[i])).powi(2);
     let mut order: Vec<usize> = (0..values.len()).collect();
     order.sort_by(|&a, &b| error(b).total_cmp(&error(a)));
-    let receivers = &context.atlas.receivers;
     for &i in order.iter().take(count) {
-        println!(
-            "    {:>6} at {:?} normal {:?}: {:.4} vs {:.4}",
-            i,
-            receivers.positions[i],
-            receivers.normals[i],
-            luminance(values[i]),
-            luminance(reference[i])
-        );
+        print_receiver(context, i, values, reference);
     }
 }
 

@@ -335,6 +335,17 @@ impl Atlas {
         a * (1.0 - barycentric.x - barycentric.y) + b * barycentric.x + c * barycentric.y
     }
 
+    /// The receiver of every texel, with gutter texels naming the receiver
+    /// of the covered texel they copy (`u32::MAX` where neither): what a
+    /// lookup that lands on a gutter should read.
+    pub fn dilated_receiver_of_texel(&self) -> Vec<u32> {
+        let mut receivers = self.receiver_of_texel.clone();
+        for &(target, source) in &self.dilation {
+            receivers[target as usize] = receivers[source as usize];
+        }
+        receivers
+    }
+
     /// Bilinear lookup of a dilated lightmap at a point on a triangle.
     pub fn sample(&self, lightmap: &[Rgb], triangle: u32, barycentric: Vec2) -> Rgb {
         let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);

@@ -790,18 +790,12 @@ fn sample_tables(
 ) -> Vec<u32> {
     let atlas = &context.atlas;
     // Gutter texels point at the covered texel they copy.
-    let gutter: HashMap<u32, u32> = atlas.dilation.iter().copied().collect();
+    let receiver_of_texel = atlas.dilated_receiver_of_texel();
     let receiver_at = |triangle: u32, barycentric: Vec2| -> u32 {
         let uv = atlas.uv_of(triangle, barycentric);
         let x = (uv.x.floor() as i64).clamp(0, atlas.width as i64 - 1) as u32;
         let y = (uv.y.floor() as i64).clamp(0, atlas.height as i64 - 1) as u32;
-        let texel = y * atlas.width + x;
-        let mut receiver = atlas.receiver_of_texel[texel as usize];
-        if receiver == u32::MAX {
-            if let Some(&source) = gutter.get(&texel) {
-                receiver = atlas.receiver_of_texel[source as usize];
-            }
-        }
+        let receiver = receiver_of_texel[(y * atlas.width + x) as usize];
         // A hit on a texel nothing covers (thin slivers) counts as black.
         if receiver == u32::MAX {
             BACK_FACE

@@ -302,21 +302,22 @@ impl Srp {
         let outputs = radiance.outputs();
         let light_basis = &self.radiance_light_basis;
         let offsets = &radiance.receiver_offsets;
-        self.glossy_sh
-            .par_chunks_mut(3 * outputs)
-            .enumerate()
-            .for_each(|(slot, out)| {
-                let cluster = offsets.partition_point(|&offset| offset as usize <= slot) - 1;
+        let output = kernels::DisjointWriter::new(&mut self.glossy_sh);
+        (0..radiance.cluster_count())
+            .into_par_iter()
+            .for_each(|cluster| {
                 let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
-                for m in 0..outputs {
-                    let row = (slot * outputs + m) * rank;
-                    let value = kernels::reconstruct(
-                        &radiance.reconstruction[row..row + rank],
-                        basis,
-                        rank,
-                    );
-                    for channel in 0..3 {
-                        out[channel * outputs + m] = value[channel];
+                for slot in offsets[cluster] as usize..offsets[cluster + 1] as usize {
+                    for m in 0..outputs {
+                        let row = (slot * outputs + m) * rank;
+                        let weights = &radiance.reconstruction[row..row + rank];
+                        let value = kernels::reconstruct(weights, basis, rank);
+                        for channel in 0..3 {
+                            // SAFETY: clusters own disjoint slot ranges.
+                            unsafe {
+                                output.write((slot * 3 + channel) * outputs + m, value[channel])
+                            };
+                        }
                     }
                 }
             });
@@ -519,25 +520,21 @@ fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
     if radiance.bands == 0 {
         return Vec::new();
     }
-    let atlas = &context.atlas;
     let mut slot_of_receiver = vec![u32::MAX; bake.receiver_count];
     for (slot, &receiver) in radiance.receivers.iter().enumerate() {
         slot_of_receiver[receiver as usize] = slot as u32;
     }
-    let mut slots: Vec<u32> = atlas
-        .receiver_of_texel
-        .iter()
-        .map(|&receiver| {
+    context
+        .atlas
+        .dilated_receiver_of_texel()
+        .into_iter()
+        .map(|receiver| {
             slot_of_receiver
                 .get(receiver as usize)
                 .copied()
                 .unwrap_or(u32::MAX)
         })
-        .collect();
-    for &(target, source) in &atlas.dilation {
-        slots[target as usize] = slots[source as usize];
-    }
-    slots
+        .collect()
 }
 
 /// The cosine lobe's factors (Ramamoorthi and Hanrahan) for irradiance.
