@@ -13,7 +13,7 @@ use relight_technique::{
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 /// Sorted receivers per reconstruction work item.
 const RECEIVER_CHUNK: usize = 2048;
@@ -56,7 +56,14 @@ pub struct Srp {
     /// Per atlas texel (gutters through their source), the glossy slot of
     /// its receiver, or `u32::MAX`; empty without radiance transport.
     glossy_slot_of_texel: Vec<u32>,
-    receiver_values: Vec<Rgb>,
+    /// Atlas texel of each receiver in cluster order, so reconstruction
+    /// writes the lightmap directly.
+    sorted_texels: Vec<u32>,
+    /// Atlas texel of each probe-visible receiver, where feedback reads
+    /// last frame's indirect light.
+    visible_texels: Vec<u32>,
+    /// Receiver-order copy of the lightmap, gathered only when asked for.
+    receiver_values: OnceLock<Vec<Rgb>>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
     /// Round-robin position of staggered updates.
@@ -98,6 +105,16 @@ impl Srp {
         let visible_albedos = pick(&receivers.albedos);
         let probe_count = bake.probes.len();
         let cluster_count = bake.cluster_count();
+        let texel_of = |receiver: u32| -> u32 {
+            let [x, y] = receivers.texels[receiver as usize];
+            y * context.atlas.width + x
+        };
+        let sorted_texels = bake
+            .cluster_receivers
+            .iter()
+            .map(|&r| texel_of(r))
+            .collect();
+        let visible_texels = visible.iter().map(|&r| texel_of(r)).collect();
         Self {
             basis_table,
             visible_direct: vec![Rgb::ZERO; visible.len()],
@@ -111,7 +128,9 @@ impl Srp {
             radiance_light_basis: vec![0.0; bake.radiance.cluster_count() * 3 * bake.radiance.rank],
             glossy_sh: vec![0.0; bake.radiance.receivers.len() * 3 * bake.radiance.outputs()],
             glossy_slot_of_texel: glossy_slots(&context, &bake),
-            receiver_values: vec![Rgb::ZERO; bake.receiver_count],
+            sorted_texels,
+            visible_texels,
+            receiver_values: OnceLock::new(),
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             timings: StageTimings::default(),
             next_probe: 0,
@@ -215,16 +234,16 @@ impl Srp {
         let feedback = self.settings.bounces > 1;
         let output = kernels::DisjointWriter::new(&mut self.visible_radiance);
         let (direct, albedos) = (&self.visible_direct, &self.visible_albedos);
-        let (indirect, receivers) = (&self.receiver_values, &self.bake.visible_receivers);
-        self.needed.par_chunks(4096).for_each(|texels| {
-            for &texel in texels {
-                let texel = texel as usize;
-                let mut irradiance = direct[texel];
+        let (lightmap, lightmap_texels) = (&self.lightmap, &self.visible_texels);
+        self.needed.par_chunks(4096).for_each(|needed| {
+            for &visible in needed {
+                let visible = visible as usize;
+                let mut irradiance = direct[visible];
                 if feedback {
-                    irradiance += indirect[receivers[texel] as usize];
+                    irradiance += lightmap[lightmap_texels[visible] as usize];
                 }
                 // SAFETY: `needed` lists each texel once.
-                unsafe { output.write(texel, albedos[texel] * irradiance * FRAC_1_PI) };
+                unsafe { output.write(visible, albedos[visible] * irradiance * FRAC_1_PI) };
             }
         });
     }
@@ -376,16 +395,19 @@ impl Srp {
         (total > 0.0).then(|| (sum / total).max(Rgb::ZERO))
     }
 
-    /// Irradiance per receiver: U_c times the cluster's light basis.
+    /// Irradiance per receiver: U_c times the cluster's light basis,
+    /// written straight into the receiver's lightmap texel.
     fn reconstruct(&mut self) {
         let bake = &self.bake;
         let rank = bake.rank;
         let light_basis = &self.light_basis;
-        let output = kernels::DisjointWriter::new(&mut self.receiver_values);
+        let texels = &self.sorted_texels;
+        let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
         let total = bake.cluster_receivers.len();
         (0..total.div_ceil(RECEIVER_CHUNK))
             .into_par_iter()
             .for_each(|chunk| {
+                let mut values = [Rgb::ZERO; RECEIVER_CHUNK];
                 let start = chunk * RECEIVER_CHUNK;
                 let end = (start + RECEIVER_CHUNK).min(total);
                 let mut cluster = bake
@@ -395,19 +417,20 @@ impl Srp {
                 let mut index = start;
                 while index < end {
                     let cluster_end = (bake.receiver_offsets[cluster + 1] as usize).min(end);
-                    let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
-                    for sorted in index..cluster_end {
-                        let weights = &bake.reconstruction[sorted * rank..(sorted + 1) * rank];
-                        let irradiance = kernels::reconstruct(weights, basis, rank).max(Rgb::ZERO);
-                        // SAFETY: cluster_receivers is a permutation (checked
-                        // when the bake is decoded), so every receiver is
-                        // written by exactly one sorted index.
-                        unsafe {
-                            output.write(bake.cluster_receivers[sorted] as usize, irradiance)
-                        };
-                    }
+                    kernels::reconstruct_many(
+                        &bake.reconstruction[index * rank..cluster_end * rank],
+                        &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
+                        rank,
+                        &mut values[index - start..cluster_end - start],
+                    );
                     index = cluster_end;
                     cluster += 1;
+                }
+                for (value, &texel) in values.iter().zip(&texels[start..end]) {
+                    // SAFETY: cluster_receivers is a permutation (checked
+                    // when the bake is decoded) and receivers own distinct
+                    // texels, so every texel is written by one sorted index.
+                    unsafe { lightmap.write(texel as usize, value.max(Rgb::ZERO)) };
                 }
             });
     }
@@ -550,6 +573,7 @@ impl Technique for Srp {
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
+        self.receiver_values = OnceLock::new();
         timings.time("direct lightmap", || {
             self.select_probes();
             self.direct_light(frame);
@@ -577,21 +601,10 @@ impl Technique for Srp {
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }
-        // Receivers into their texels in atlas order (mostly sequential
-        // writes), then the gutters copy them; both split across threads.
+        // Reconstruction wrote the receivers' texels; the gutters copy them.
         timings.time("dilation", || {
             let atlas = &self.context.atlas;
-            let width = atlas.width as usize;
             let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
-            self.receiver_values
-                .par_chunks(8192)
-                .zip(atlas.receivers.texels.par_chunks(8192))
-                .for_each(|(values, texels)| {
-                    for (value, &[x, y]) in values.iter().zip(texels) {
-                        // SAFETY: every receiver owns a distinct texel.
-                        unsafe { lightmap.write(y as usize * width + x as usize, *value) };
-                    }
-                });
             atlas.dilation.par_chunks(8192).for_each(|pairs| {
                 for &(target, source) in pairs {
                     // SAFETY: gutter targets are distinct and never sources
@@ -644,7 +657,16 @@ impl Technique for Srp {
     }
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
-        Some(&self.receiver_values)
+        Some(self.receiver_values.get_or_init(|| {
+            let width = self.context.atlas.width as usize;
+            self.context
+                .atlas
+                .receivers
+                .texels
+                .par_iter()
+                .map(|&[x, y]| self.lightmap[y as usize * width + x as usize])
+                .collect()
+        }))
     }
 
     fn bake_facts(&self) -> Vec<(&'static str, String)> {
@@ -731,7 +753,10 @@ impl Technique for Srp {
             ),
             MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
-            MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
+            MemoryEntry::new(
+                "receiver texels (cluster order, probe-visible)",
+                (self.sorted_texels.len() + self.visible_texels.len()) * 4,
+            ),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
