@@ -9,7 +9,7 @@
 //! seed and the point's index, so a static point sees the same pattern every
 //! frame (no temporal flicker) and results do not depend on thread count.
 
-use crate::bvh::{Bvh, Ray};
+use crate::bvh::{Bvh, Ray, NO_OCCLUDER};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, SampleStream};
@@ -100,6 +100,28 @@ impl Emitters {
     }
 }
 
+/// Lights whose shadow rays keep a cache of their last occluder in a batch;
+/// further lights trace without one.
+const CACHED_LIGHTS: usize = 8;
+
+/// The occluder that last blocked a shadow ray, per punctual light and for
+/// the area lights, carried from point to point through a batch (see
+/// [`Bvh::occluded_cached`]). Results never depend on it.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadowCache {
+    lights: [u32; CACHED_LIGHTS],
+    area_lights: u32,
+}
+
+impl Default for ShadowCache {
+    fn default() -> Self {
+        Self {
+            lights: [NO_OCCLUDER; CACHED_LIGHTS],
+            area_lights: NO_OCCLUDER,
+        }
+    }
+}
+
 /// The shared direct-light service over one scene's BVH.
 #[derive(Clone, Copy)]
 pub struct DirectLight<'a> {
@@ -142,13 +164,35 @@ impl<'a> DirectLight<'a> {
     /// emissive triangles and the environment. `point_key` selects the sample
     /// pattern (use a stable index such as the receiver or pixel number).
     pub fn irradiance(&self, lights: &[Light], point: Vec3, normal: Vec3, point_key: u64) -> Rgb {
+        self.irradiance_cached(
+            lights,
+            point,
+            normal,
+            point_key,
+            &mut ShadowCache::default(),
+        )
+    }
+
+    /// [`DirectLight::irradiance`] with a shadow cache carried over from the
+    /// previous point: the same result, faster when points come in spatial
+    /// order.
+    pub fn irradiance_cached(
+        &self,
+        lights: &[Light],
+        point: Vec3,
+        normal: Vec3,
+        point_key: u64,
+        cache: &mut ShadowCache,
+    ) -> Rgb {
         let origin = point + normal * self.ray_epsilon;
         let mut irradiance = Rgb::ZERO;
-        for light in lights {
-            irradiance += self.punctual(light, origin, normal);
+        let mut uncached = NO_OCCLUDER;
+        for (index, light) in lights.iter().enumerate() {
+            let occluder = cache.lights.get_mut(index).unwrap_or(&mut uncached);
+            irradiance += self.punctual(light, origin, normal, occluder);
         }
         if !self.emitters.is_empty() && self.settings.area_light_samples > 0 {
-            irradiance += self.area_lights(origin, normal, point_key);
+            irradiance += self.area_lights(origin, normal, point_key, &mut cache.area_lights);
         }
         let environment = self.scene.environment.radiance;
         if environment.max_element() > 0.0 && self.settings.environment_samples > 0 {
@@ -172,19 +216,26 @@ impl<'a> DirectLight<'a> {
             .enumerate()
             .for_each(|(chunk, out)| {
                 let start = chunk * POINTS_PER_TASK;
+                let mut cache = ShadowCache::default();
                 for (offset, value) in out.iter_mut().enumerate() {
                     let index = start + offset;
-                    *value = self.irradiance(lights, points[index], normals[index], index as u64);
+                    *value = self.irradiance_cached(
+                        lights,
+                        points[index],
+                        normals[index],
+                        index as u64,
+                        &mut cache,
+                    );
                 }
             });
     }
 
-    fn punctual(&self, light: &Light, origin: Vec3, normal: Vec3) -> Rgb {
+    fn punctual(&self, light: &Light, origin: Vec3, normal: Vec3, occluder: &mut u32) -> Rgb {
         match *light {
             Light::Point {
                 position,
                 intensity,
-            } => self.point_light(origin, normal, position, intensity, 1.0),
+            } => self.point_light(origin, normal, position, intensity, 1.0, occluder),
             Light::Spot {
                 position,
                 direction,
@@ -201,7 +252,7 @@ impl<'a> DirectLight<'a> {
                 if falloff <= 0.0 {
                     return Rgb::ZERO;
                 }
-                self.point_light(origin, normal, position, intensity, falloff)
+                self.point_light(origin, normal, position, intensity, falloff, occluder)
             }
             Light::Directional {
                 direction,
@@ -217,7 +268,7 @@ impl<'a> DirectLight<'a> {
                     direction: toward_light,
                     t_max: f32::INFINITY,
                 };
-                if self.bvh.occluded(&ray) {
+                if self.bvh.occluded_cached(&ray, occluder) {
                     Rgb::ZERO
                 } else {
                     irradiance * cosine
@@ -234,6 +285,7 @@ impl<'a> DirectLight<'a> {
         position: Vec3,
         intensity: Rgb,
         scale: f32,
+        occluder: &mut u32,
     ) -> Rgb {
         let offset = position - origin;
         let distance_squared = offset.length_squared();
@@ -241,7 +293,7 @@ impl<'a> DirectLight<'a> {
         if cosine <= 0.0 || distance_squared <= 0.0 {
             return Rgb::ZERO;
         }
-        if !self.visible(origin, offset) {
+        if !self.visible(origin, offset, occluder) {
             return Rgb::ZERO;
         }
         // E = I cos(theta) / d^2, with cos = n.offset / d.
@@ -251,16 +303,16 @@ impl<'a> DirectLight<'a> {
     /// Shadow ray from `origin` to `origin + offset`, stopping just short of
     /// the target so the light's own surface does not occlude it.
     #[inline]
-    fn visible(&self, origin: Vec3, offset: Vec3) -> bool {
+    fn visible(&self, origin: Vec3, offset: Vec3, occluder: &mut u32) -> bool {
         let ray = Ray {
             origin,
             direction: offset,
             t_max: 1.0 - 1e-4,
         };
-        !self.bvh.occluded(&ray)
+        !self.bvh.occluded_cached(&ray, occluder)
     }
 
-    fn area_lights(&self, origin: Vec3, normal: Vec3, point_key: u64) -> Rgb {
+    fn area_lights(&self, origin: Vec3, normal: Vec3, point_key: u64, occluder: &mut u32) -> Rgb {
         let samples = self.settings.area_light_samples;
         let mut rng = SampleStream::new(self.settings.seed, point_key, 0xA4EA);
         let mut sum = Rgb::ZERO;
@@ -269,7 +321,7 @@ impl<'a> DirectLight<'a> {
             let u = (sample as f32 + rng.next_f32()) / samples as f32;
             let (index, probability) = self.emitters.pick(u.min(0.999_999_94));
             let barycentric = relight_core::sampling::uniform_triangle(rng.next_vec2());
-            sum += self.emitter_sample(origin, normal, index, barycentric) / probability;
+            sum += self.emitter_sample(origin, normal, index, barycentric, occluder) / probability;
         }
         sum / samples as f32
     }
@@ -283,6 +335,7 @@ impl<'a> DirectLight<'a> {
         normal: Vec3,
         index: usize,
         barycentric: Vec2,
+        occluder: &mut u32,
     ) -> Rgb {
         let [a, b, c] = self.emitters.vertices[index];
         let light_point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
@@ -299,7 +352,7 @@ impl<'a> DirectLight<'a> {
         if cosine_receiver <= 0.0 || cosine_emitter <= 0.0 {
             return Rgb::ZERO;
         }
-        if !self.visible(origin, offset) {
+        if !self.visible(origin, offset, occluder) {
             return Rgb::ZERO;
         }
         self.emitters.radiance[index]

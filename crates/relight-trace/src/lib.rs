@@ -15,4 +15,4 @@ pub mod direct;
 pub mod path;
 pub mod raybench;
 
-pub use bvh::{Bvh, Hit, Ray};
+pub use bvh::{Bvh, Hit, Ray, NO_OCCLUDER};

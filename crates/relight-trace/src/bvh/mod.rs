@@ -70,6 +70,9 @@ use rayon::prelude::*;
 #[cfg(feature = "embree")]
 pub use embree::EmbreeScene;
 
+/// An empty shadow cache for [`Bvh::occluded_cached`].
+pub const NO_OCCLUDER: u32 = u32::MAX;
+
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
     pub origin: Vec3,
@@ -163,7 +166,17 @@ impl Bvh {
     /// Whether anything is hit with 0 < t < `ray.t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray) -> bool {
-        traverse::occluded(&self.nodes, &self.packets, ray)
+        traverse::occluded(&self.nodes, &self.packets, ray, &mut { NO_OCCLUDER })
+    }
+
+    /// [`Bvh::occluded`] that first tries the geometry which blocked an
+    /// earlier, similar ray: `cache` starts as [`NO_OCCLUDER`] and is
+    /// updated whenever this ray is blocked. Rays toward one light from
+    /// neighbouring points, taken in order, mostly skip their traversal.
+    /// The answer is the same for any `cache` value.
+    #[inline]
+    pub fn occluded_cached(&self, ray: &Ray, cache: &mut u32) -> bool {
+        traverse::occluded(&self.nodes, &self.packets, ray, cache)
     }
 
     /// [`Bvh::intersect`] for every ray, in parallel.

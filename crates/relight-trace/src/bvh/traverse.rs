@@ -303,9 +303,14 @@ fn intersect_avx2(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> 
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn occluded_avx2(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> bool {
+fn occluded_avx2(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+    occluder: &mut u32,
+) -> bool {
     // SAFETY: AVX2 is enabled for this function.
-    unsafe { occluded_generic::<AvxLanes>(nodes, packets, ray) }
+    unsafe { occluded_generic::<AvxLanes>(nodes, packets, ray, occluder) }
 }
 
 /// The same traversal compiled for the baseline target and, on x86_64, with
@@ -321,15 +326,26 @@ pub(crate) fn intersect(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ra
     unsafe { intersect_generic::<PortableLanes>(nodes, packets, ray) }
 }
 
+/// `occluder` is a triangle packet index tested before the traversal, and
+/// set to the packet that blocks this ray when one does (a shadow cache:
+/// neighbouring shadow rays toward one light are mostly blocked by the same
+/// geometry). Any value is safe: one past the packets skips the test, and a
+/// packet that misses only costs its test, so the answer never depends on
+/// it.
 #[inline]
-pub(crate) fn occluded(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> bool {
+pub(crate) fn occluded(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+    occluder: &mut u32,
+) -> bool {
     #[cfg(target_arch = "x86_64")]
     if has_avx2() {
         // SAFETY: as in `intersect`.
-        return unsafe { occluded_avx2(nodes, packets, ray) };
+        return unsafe { occluded_avx2(nodes, packets, ray, occluder) };
     }
     // SAFETY: as in `intersect`.
-    unsafe { occluded_generic::<PortableLanes>(nodes, packets, ray) }
+    unsafe { occluded_generic::<PortableLanes>(nodes, packets, ray, occluder) }
 }
 
 /// # Safety
@@ -412,13 +428,19 @@ unsafe fn occluded_generic<L: Lanes>(
     nodes: &[WideNode],
     packets: &[TrianglePacket],
     ray: &Ray,
+    occluder: &mut u32,
 ) -> bool {
     let t_max = ray.t_max;
     if !is_traceable(ray) {
         return false;
     }
-    let slab = SlabRay::<L>::new(ray);
     let sheared = ShearedRay::new(ray.origin, ray.direction);
+    if let Some(packet) = packets.get(*occluder as usize) {
+        if intersect_packet(&sheared, packet, t_max).is_some() {
+            return true;
+        }
+    }
+    let slab = SlabRay::<L>::new(ray);
     let mut stack = TraversalStack::new();
     let mut current = 0u32;
     loop {
@@ -428,6 +450,7 @@ unsafe fn occluded_generic<L: Lanes>(
                 // SAFETY: the builder only emits packet ranges inside the array.
                 let packet = unsafe { packets.get_unchecked(packet_index) };
                 if intersect_packet(&sheared, packet, t_max).is_some() {
+                    *occluder = packet_index as u32;
                     return true;
                 }
             }
@@ -497,10 +520,69 @@ mod tests {
             // SAFETY: PortableLanes needs no CPU features.
             let portable =
                 unsafe { intersect_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
-            let portable_occluded =
-                unsafe { occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
+            let portable_occluded = unsafe {
+                occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray, &mut u32::MAX)
+            };
             assert_eq!(portable, bvh.intersect(&ray));
             assert_eq!(portable_occluded, bvh.occluded(&ray));
         }
+    }
+
+    /// The shadow cache may only save work: with the cache carried along a
+    /// row of points (as the direct-light service does), reset, or set to an
+    /// unrelated or out-of-range packet, every answer equals the plain
+    /// traversal's, and rows under the slabs do hit the cache.
+    #[test]
+    fn shadow_cache_never_changes_the_answer() {
+        let mut rng = Pcg32::new(9, 3);
+        // Random slabs of triangles between y = 1 and y = 3, over a floor.
+        let mut positions = Vec::new();
+        for _ in 0..400 {
+            let corner = Vec3::new(
+                rng.next_f32() * 10.0,
+                1.0 + 2.0 * rng.next_f32(),
+                rng.next_f32() * 10.0,
+            );
+            let size = 0.2 + rng.next_f32();
+            positions.extend([
+                corner,
+                corner + Vec3::new(size, 0.0, 0.0),
+                corner + Vec3::new(0.0, 0.1 * rng.next_f32(), size),
+            ]);
+        }
+        let triangles: Vec<[u32; 3]> = (0..400u32)
+            .map(|index| [3 * index, 3 * index + 1, 3 * index + 2])
+            .collect();
+        let bvh = Bvh::build(&positions, &triangles);
+        let toward_light = Vec3::new(0.3, 1.0, 0.2).normalize();
+        let mut carried = crate::bvh::NO_OCCLUDER;
+        let (mut blocked, mut cache_hits) = (0, 0);
+        for step in 0..4000 {
+            let origin = Vec3::new((step % 200) as f32 * 0.05, 0.0, (step / 200) as f32 * 0.5);
+            let ray = Ray {
+                origin,
+                direction: toward_light,
+                t_max: f32::INFINITY,
+            };
+            let expected = bvh.occluded(&ray);
+            let before = carried;
+            let with_carried = bvh.occluded_cached(&ray, &mut carried);
+            assert_eq!(with_carried, expected, "step {step}");
+            if expected {
+                blocked += 1;
+                cache_hits += usize::from(carried == before);
+            }
+            let unrelated = rng.next_u32() % (bvh.packet_count() as u32 + 3);
+            assert_eq!(bvh.occluded_cached(&ray, &mut { unrelated }), expected);
+            assert_eq!(
+                bvh.occluded_cached(&Ray { t_max: 0.5, ..ray }, &mut { before }),
+                bvh.occluded(&Ray { t_max: 0.5, ..ray })
+            );
+        }
+        assert!(blocked > 500, "the slabs must block many rays: {blocked}");
+        assert!(
+            cache_hits > blocked / 2,
+            "{cache_hits} of {blocked} blocked rays reused the occluder"
+        );
     }
 }
