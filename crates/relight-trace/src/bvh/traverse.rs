@@ -521,7 +521,9 @@ mod tests {
             let portable =
                 unsafe { intersect_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
             let portable_occluded = unsafe {
-                occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray, &mut u32::MAX)
+                occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray, &mut {
+                    crate::bvh::NO_OCCLUDER
+                })
             };
             assert_eq!(portable, bvh.intersect(&ray));
             assert_eq!(portable_occluded, bvh.occluded(&ray));
