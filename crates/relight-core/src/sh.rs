@@ -60,6 +60,49 @@ pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
         "SH bands must be 1..=8, got {bands}"
     );
     assert!(out.len() >= coefficient_count(bands));
+    if bands <= 4 {
+        // Irradiance and the presets use at most four bands, evaluated per
+        // pixel and per sample: the recurrence unrolled, with no table.
+        let values = evaluate_four_bands(direction);
+        out[..bands * bands].copy_from_slice(&values[..bands * bands]);
+        return;
+    }
+    evaluate_by_recurrence(direction, bands, out);
+}
+
+/// The first four bands in closed form: the recurrence's Legendre
+/// polynomials in z times Re and Im of (x + i y)^m, with the normalisation
+/// folded into each constant (same convention, no Condon-Shortley phase).
+#[inline]
+fn evaluate_four_bands(direction: Vec3) -> [f32; 16] {
+    let (x, y, z) = (direction.x, direction.y, direction.z);
+    let (z2, xx_minus_yy, two_xy) = (z * z, x * x - y * y, 2.0 * x * y);
+    // Re and Im of (x + i y)^3.
+    let cos_3 = x * xx_minus_yy - y * two_xy;
+    let sin_3 = x * two_xy + y * xx_minus_yy;
+    let band_3_order_1 = 2.285_229 * z2 - 0.457_045_8;
+    [
+        0.282_094_8,
+        0.488_602_5 * y,
+        0.488_602_5 * z,
+        0.488_602_5 * x,
+        0.546_274_2 * two_xy,
+        1.092_548_4 * z * y,
+        0.946_174_7 * z2 - 0.315_391_57,
+        1.092_548_4 * z * x,
+        0.546_274_2 * xx_minus_yy,
+        0.590_043_6 * sin_3,
+        1.445_305_7 * z * two_xy,
+        band_3_order_1 * y,
+        z * (1.865_881_7 * z2 - 1.119_529),
+        band_3_order_1 * x,
+        1.445_305_7 * z * xx_minus_yy,
+        0.590_043_6 * cos_3,
+    ]
+}
+
+/// Any band count, by the associated Legendre recurrence.
+fn evaluate_by_recurrence(direction: Vec3, bands: usize, out: &mut [f32]) {
     let tables = tables();
     let (x, y, z) = (direction.x, direction.y, direction.z);
     // Associated Legendre P_l^m(z) without the (1-z^2)^(m/2) factor; that factor
@@ -210,6 +253,33 @@ pub fn project_by_quadrature(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn closed_form_bands_match_the_recurrence() {
+        let mut rng = crate::sampling::Pcg32::new(17, 4);
+        let mut directions = vec![Vec3::X, Vec3::Y, Vec3::Z, -Vec3::Z];
+        directions.extend((0..500).map(|_| crate::sampling::uniform_sphere(rng.next_vec2())));
+        for direction in directions {
+            let mut closed = [0.0f32; 16];
+            let mut recurrence = [0.0f32; 16];
+            for bands in 1..=4 {
+                closed.fill(f32::NAN);
+                evaluate(direction, bands, &mut closed);
+                evaluate_by_recurrence(direction, bands, &mut recurrence);
+                for index in 0..bands * bands {
+                    // The basis is below 0.75 in magnitude; f32 constants
+                    // and a different operation order differ by a few ulps.
+                    assert!(
+                        (closed[index] - recurrence[index]).abs() < 2e-6,
+                        "{direction} bands {bands} index {index}: {} against {}",
+                        closed[index],
+                        recurrence[index]
+                    );
+                }
+                assert!(closed[bands * bands..].iter().all(|value| value.is_nan()));
+            }
+        }
+    }
 
     #[test]
     fn basis_is_orthonormal_by_quadrature() {
