@@ -27,8 +27,9 @@
 //! Every frame: direct irradiance at the texels the probes see (plus last
 //! frame's indirect irradiance, times albedo / pi, for further bounces);
 //! probe projection into SH through the sample tables; per cluster the
-//! light basis vector Sigma_c V^T lambda; per receiver U_c times it; then
-//! dilation into the lightmap, sampled bilinearly when shading.
+//! light basis vector Sigma_c V^T lambda; per receiver U_c times it,
+//! written straight into its lightmap texel; then the gutters are dilated,
+//! and the lightmap is sampled bilinearly when shading.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|
