@@ -108,7 +108,7 @@ fn detail(context: &SceneContext, bake: &[u8], values: &[Rgb], reference: &[Rgb]
             stats.mean_nearby,
             stats.valid_sample_fraction * 100.0,
             stats.captured_energy,
-            decoded.cluster_count(),
+            decoded.clusters.cluster_count(),
             decoded.visible_receivers.len()
         );
 }

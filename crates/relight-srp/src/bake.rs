@@ -53,20 +53,9 @@ pub struct SrpBake {
     pub sample_targets: Vec<u32>,
     /// The receivers (lightmap texels) any probe sample hits, ascending.
     pub visible_receivers: Vec<u32>,
-    /// Principal vectors per cluster (clusters with less keep zero rows).
-    pub rank: usize,
-    /// Receivers in cluster order; cluster c owns
-    /// `cluster_receivers[receiver_offsets[c]..receiver_offsets[c + 1]]`.
-    pub cluster_receivers: Vec<u32>,
-    pub receiver_offsets: Vec<u32>,
-    /// Probes whose columns a cluster stores (its receivers' nearby probes).
-    pub cluster_probes: Vec<u32>,
-    pub probe_offsets: Vec<u32>,
-    /// Sigma_c V^T per cluster, row-major rank x (probes x C), f16 bits;
-    /// cluster c starts at `rank * C * probe_offsets[c]`.
-    pub projection: Vec<u16>,
-    /// U_c rows in cluster-receiver order, `rank` f16 values each.
-    pub reconstruction: Vec<u16>,
+    /// The irradiance transport: one row per receiver, every receiver in
+    /// one cluster.
+    pub clusters: ClusterSet,
     pub stats: BakeStats,
     /// Radiance transport of the glossy receivers (empty when off).
     pub radiance: RadianceTransport,
@@ -80,27 +69,158 @@ pub struct SrpBake {
 pub struct RadianceTransport {
     /// Output SH bands; 0 = no radiance transport.
     pub bands: usize,
-    /// Principal vectors per cluster: each receiver brings `bands^2` rows
-    /// of differing shape, so this is larger than the irradiance's rank.
-    pub rank: usize,
-    /// Glossy receivers in cluster order, with cluster offsets.
-    pub receivers: Vec<u32>,
-    pub receiver_offsets: Vec<u32>,
-    pub cluster_probes: Vec<u32>,
-    pub probe_offsets: Vec<u32>,
-    /// Sigma_c V^T per cluster, as for the irradiance.
-    pub projection: Vec<u16>,
-    /// `bands^2` rows of `rank` f16 weights per receiver, in cluster order.
-    pub reconstruction: Vec<u16>,
+    /// The glossy receivers' transport: `bands^2` rows per receiver. Its
+    /// rank is its own: each receiver brings `bands^2` rows of differing
+    /// shape, so it is larger than the irradiance's.
+    pub clusters: ClusterSet,
 }
 
 impl RadianceTransport {
+    pub fn outputs(&self) -> usize {
+        self.bands * self.bands
+    }
+}
+
+/// Transport compressed by clustered PCA (section 4.5.2): receivers grouped
+/// by [`transport::aabb_clusters`], each cluster keeping only its
+/// receivers' nearby probes as columns, with Sigma_c V^T and U_c in f16.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ClusterSet {
+    /// Principal vectors per cluster (clusters with fewer keep zero rows).
+    pub rank: usize,
+    /// Receivers in cluster order; cluster c owns
+    /// `receivers[receiver_offsets[c]..receiver_offsets[c + 1]]`.
+    pub receivers: Vec<u32>,
+    pub receiver_offsets: Vec<u32>,
+    /// Probes whose columns a cluster stores (its receivers' nearby
+    /// probes), with offsets like the receivers'.
+    pub probes: Vec<u32>,
+    pub probe_offsets: Vec<u32>,
+    /// Sigma_c V^T per cluster, row-major rank x (probes x C), f16 bits;
+    /// cluster c starts at `rank * C * probe_offsets[c]`.
+    pub projection: Vec<u16>,
+    /// U_c rows in cluster-receiver order, `rank` f16 values each, one or
+    /// more rows per receiver.
+    pub reconstruction: Vec<u16>,
+}
+
+/// Sums over a cluster set's compression, for the bake's figures.
+#[derive(Clone, Copy, Debug, Default)]
+struct CompressionTotals {
+    energy: f64,
+    captured: f64,
+    valid_samples: u64,
+}
+
+impl ClusterSet {
+    /// The set of `clusters` (members in cluster order) and their
+    /// compressed outputs, in the same order.
+    fn assemble(
+        rank: usize,
+        clusters: &[Vec<u32>],
+        compressed: Vec<ClusterOutput>,
+    ) -> (Self, CompressionTotals) {
+        let mut set = Self {
+            rank,
+            receiver_offsets: vec![0],
+            probe_offsets: vec![0],
+            ..Default::default()
+        };
+        let mut totals = CompressionTotals::default();
+        for (members, output) in clusters.iter().zip(compressed) {
+            set.receivers.extend_from_slice(members);
+            set.receiver_offsets.push(set.receivers.len() as u32);
+            set.probes.extend_from_slice(&output.probes);
+            set.probe_offsets.push(set.probes.len() as u32);
+            set.projection.extend(output.projection);
+            set.reconstruction.extend(output.reconstruction);
+            totals.energy += output.energy;
+            totals.captured += output.captured;
+            totals.valid_samples += output.valid_samples;
+        }
+        (set, totals)
+    }
+
     pub fn cluster_count(&self) -> usize {
         self.receiver_offsets.len().saturating_sub(1)
     }
 
-    pub fn outputs(&self) -> usize {
-        self.bands * self.bands
+    /// Bytes of the receiver and probe lists with their offsets.
+    pub fn list_bytes(&self) -> usize {
+        (self.receivers.len()
+            + self.receiver_offsets.len()
+            + self.probes.len()
+            + self.probe_offsets.len())
+            * 4
+    }
+
+    /// Bytes of the two f16 matrices.
+    pub fn matrix_bytes(&self) -> usize {
+        (self.projection.len() + self.reconstruction.len()) * 2
+    }
+
+    /// Everything but the rank, which the payload keeps beside the set's
+    /// other sizes.
+    fn write(&self, writer: &mut PayloadWriter) {
+        writer.u32s(&self.receivers);
+        writer.u32s(&self.receiver_offsets);
+        writer.u32s(&self.probes);
+        writer.u32s(&self.probe_offsets);
+        writer.halves(&self.projection);
+        writer.halves(&self.reconstruction);
+    }
+
+    fn read(reader: &mut PayloadReader, rank: usize) -> Result<Self, TechniqueError> {
+        Ok(Self {
+            rank,
+            receivers: reader.u32s()?,
+            receiver_offsets: reader.u32s()?,
+            probes: reader.u32s()?,
+            probe_offsets: reader.u32s()?,
+            projection: reader.halves()?,
+            reconstruction: reader.halves()?,
+        })
+    }
+
+    /// Every index the run time follows stays in bounds: receivers below
+    /// `receiver_count` and listed once, probes below `probe_count`, and
+    /// matrices of `coefficients` per probe and `rows_per_receiver` rows.
+    fn validate(
+        &self,
+        receiver_count: usize,
+        probe_count: usize,
+        coefficients: usize,
+        rows_per_receiver: usize,
+    ) -> Result<(), &'static str> {
+        if self.rank == 0 {
+            return Err("no principal vectors per cluster");
+        }
+        if self.receiver_offsets.len() != self.probe_offsets.len()
+            || !offsets_are_monotonic(&self.receiver_offsets, self.receivers.len())
+            || !offsets_are_monotonic(&self.probe_offsets, self.probes.len())
+        {
+            return Err("cluster offsets are inconsistent");
+        }
+        let mut seen = vec![false; receiver_count];
+        for &receiver in &self.receivers {
+            match seen.get_mut(receiver as usize) {
+                Some(slot) if !*slot => *slot = true,
+                _ => return Err("a cluster's receiver does not exist or is in two clusters"),
+            }
+        }
+        if self
+            .probes
+            .iter()
+            .any(|&probe| probe as usize >= probe_count)
+        {
+            return Err("a cluster names a probe that does not exist");
+        }
+        if self.projection.len() != self.rank * coefficients * self.probes.len()
+            || self.reconstruction.len() != self.rank * rows_per_receiver * self.receivers.len()
+        {
+            return Err("compressed matrices do not match their sizes");
+        }
+        Ok(())
     }
 }
 
@@ -216,6 +336,7 @@ impl SrpBake {
             .collect();
         progress.finish();
 
+        let (cluster_set, totals) = ClusterSet::assemble(rank, &clusters, compressed);
         let mut bake = Self {
             receiver_count: receivers.len(),
             bands,
@@ -224,36 +345,17 @@ impl SrpBake {
             sample_directions: Vec::new(),
             sample_targets: Vec::new(),
             visible_receivers: Vec::new(),
-            rank,
-            cluster_receivers: Vec::with_capacity(receivers.len()),
-            receiver_offsets: vec![0],
-            cluster_probes: Vec::new(),
-            probe_offsets: vec![0],
-            projection: Vec::new(),
-            reconstruction: Vec::with_capacity(receivers.len() * rank),
+            clusters: cluster_set,
             stats,
             radiance: RadianceTransport::default(),
         };
-        let (mut energy, mut captured, mut valid_samples) = (0.0f64, 0.0f64, 0u64);
-        for (members, output) in clusters.iter().zip(compressed) {
-            bake.cluster_receivers.extend_from_slice(members);
-            bake.receiver_offsets
-                .push(bake.cluster_receivers.len() as u32);
-            bake.cluster_probes.extend_from_slice(&output.probes);
-            bake.probe_offsets.push(bake.cluster_probes.len() as u32);
-            bake.projection.extend(output.projection);
-            bake.reconstruction.extend(output.reconstruction);
-            energy += output.energy;
-            captured += output.captured;
-            valid_samples += output.valid_samples;
-        }
-        bake.stats.captured_energy = if energy > 0.0 {
-            (captured / energy) as f32
+        bake.stats.captured_energy = if totals.energy > 0.0 {
+            (totals.captured / totals.energy) as f32
         } else {
             1.0
         };
         bake.stats.valid_sample_fraction =
-            valid_samples as f32 / (receivers.len() as f32 * params.samples as f32);
+            totals.valid_samples as f32 / (receivers.len() as f32 * params.samples as f32);
 
         if params.radiance_order > 0 {
             bake.radiance =
@@ -287,10 +389,6 @@ impl SrpBake {
         Ok(bake)
     }
 
-    pub fn cluster_count(&self) -> usize {
-        self.receiver_offsets.len() - 1
-    }
-
     pub fn coefficients(&self) -> usize {
         sh::coefficient_count(self.bands)
     }
@@ -298,25 +396,18 @@ impl SrpBake {
     /// Little-endian payload for the bake file.
     pub fn encode(&self) -> Vec<u8> {
         let mut writer = PayloadWriter::with_capacity(
-            self.projection.len() * 2
-                + self.reconstruction.len() * 2
-                + self.sample_targets.len() * 4,
+            self.clusters.matrix_bytes() + self.sample_targets.len() * 4,
         );
         writer.u32(PAYLOAD_VERSION);
         writer.u32(self.receiver_count as u32);
         writer.u32(self.bands as u32);
         writer.f32(self.radius);
-        writer.u32(self.rank as u32);
+        writer.u32(self.clusters.rank as u32);
         writer.vectors(&self.probes);
         writer.vectors(&self.sample_directions);
         writer.u32s(&self.sample_targets);
         writer.u32s(&self.visible_receivers);
-        writer.u32s(&self.cluster_receivers);
-        writer.u32s(&self.receiver_offsets);
-        writer.u32s(&self.cluster_probes);
-        writer.u32s(&self.probe_offsets);
-        writer.halves(&self.projection);
-        writer.halves(&self.reconstruction);
+        self.clusters.write(&mut writer);
         let stats = &self.stats;
         for value in [
             stats.placed_probes,
@@ -334,13 +425,8 @@ impl SrpBake {
         ]);
         let radiance = &self.radiance;
         writer.u32(radiance.bands as u32);
-        writer.u32(radiance.rank as u32);
-        writer.u32s(&radiance.receivers);
-        writer.u32s(&radiance.receiver_offsets);
-        writer.u32s(&radiance.cluster_probes);
-        writer.u32s(&radiance.probe_offsets);
-        writer.halves(&radiance.projection);
-        writer.halves(&radiance.reconstruction);
+        writer.u32(radiance.clusters.rank as u32);
+        radiance.clusters.write(&mut writer);
         writer.finish()
     }
 
@@ -360,26 +446,17 @@ impl SrpBake {
         let sample_directions = reader.vectors()?;
         let sample_targets = reader.u32s()?;
         let visible_receivers = reader.u32s()?;
-        let cluster_receivers = reader.u32s()?;
-        let receiver_offsets = reader.u32s()?;
-        let cluster_probes = reader.u32s()?;
-        let probe_offsets = reader.u32s()?;
-        let projection = reader.halves()?;
-        let reconstruction = reader.halves()?;
+        let clusters = ClusterSet::read(&mut reader, rank)?;
         let mut counts = [0u32; 5];
         for count in &mut counts {
             *count = reader.u32()?;
         }
         let floats = reader.f32s()?;
+        let radiance_bands = reader.u32()? as usize;
+        let radiance_rank = reader.u32()? as usize;
         let radiance = RadianceTransport {
-            bands: reader.u32()? as usize,
-            rank: reader.u32()? as usize,
-            receivers: reader.u32s()?,
-            receiver_offsets: reader.u32s()?,
-            cluster_probes: reader.u32s()?,
-            probe_offsets: reader.u32s()?,
-            projection: reader.halves()?,
-            reconstruction: reader.halves()?,
+            bands: radiance_bands,
+            clusters: ClusterSet::read(&mut reader, radiance_rank)?,
         };
         reader.end()?;
         let bake = Self {
@@ -390,13 +467,7 @@ impl SrpBake {
             sample_directions,
             sample_targets,
             visible_receivers,
-            rank,
-            cluster_receivers,
-            receiver_offsets,
-            cluster_probes,
-            probe_offsets,
-            projection,
-            reconstruction,
+            clusters,
             stats: BakeStats {
                 placed_probes: counts[0],
                 added_for_coverage: counts[1],
@@ -409,24 +480,22 @@ impl SrpBake {
             },
             radiance,
         };
-        bake.validate().map_err(|message| reader.corrupt(message))?;
+        bake.validate()
+            .map_err(|message| reader.corrupt(&message))?;
         Ok(bake)
     }
 
     /// Every index the run time follows stays in bounds.
-    fn validate(&self) -> Result<(), &'static str> {
+    fn validate(&self) -> Result<(), String> {
         if !(1..=sh::MAX_BANDS).contains(&self.bands) {
-            return Err("SH bands outside 1..=8");
-        }
-        if self.rank == 0 {
-            return Err("no principal vectors per cluster");
+            return Err("SH bands outside 1..=8".into());
         }
         if self.radius.is_nan() || self.radius <= 0.0 {
-            return Err("the cut-off radius is not positive");
+            return Err("the cut-off radius is not positive".into());
         }
         let samples = self.sample_directions.len();
         if self.sample_targets.len() != samples * self.probes.len() {
-            return Err("sample tables do not match probes x samples");
+            return Err("sample tables do not match probes x samples".into());
         }
         if self
             .sample_targets
@@ -437,87 +506,36 @@ impl SrpBake {
                 .iter()
                 .any(|&receiver| receiver as usize >= self.receiver_count)
         {
-            return Err("a probe sample names a texel that does not exist");
+            return Err("a probe sample names a texel that does not exist".into());
         }
-        if self.receiver_offsets.len() != self.probe_offsets.len()
-            || !offsets_are_monotonic(&self.receiver_offsets, self.cluster_receivers.len())
-            || !offsets_are_monotonic(&self.probe_offsets, self.cluster_probes.len())
-        {
-            return Err("cluster offsets are inconsistent");
+        if self.clusters.receivers.len() != self.receiver_count {
+            return Err("clusters do not cover the receivers".into());
         }
-        if self.cluster_receivers.len() != self.receiver_count
-            || self
-                .cluster_receivers
-                .iter()
-                .any(|&receiver| receiver as usize >= self.receiver_count)
-        {
-            return Err("clusters do not cover the receivers");
-        }
-        let mut seen = vec![false; self.receiver_count];
-        for &receiver in &self.cluster_receivers {
-            if std::mem::replace(&mut seen[receiver as usize], true) {
-                return Err("a receiver is in two clusters");
-            }
-        }
-        if self
-            .cluster_probes
-            .iter()
-            .any(|&probe| probe as usize >= self.probes.len())
-        {
-            return Err("a cluster names a probe that does not exist");
-        }
-        let coefficients = sh::coefficient_count(self.bands);
-        if self.projection.len() != self.rank * coefficients * self.cluster_probes.len()
-            || self.reconstruction.len() != self.rank * self.receiver_count
-        {
-            return Err("compressed matrices do not match their sizes");
-        }
-        self.validate_radiance()
-    }
-
-    fn validate_radiance(&self) -> Result<(), &'static str> {
+        let coefficients = self.coefficients();
+        self.clusters
+            .validate(self.receiver_count, self.probes.len(), coefficients, 1)?;
         let radiance = &self.radiance;
         if radiance.bands == 0 {
-            return if radiance.receivers.is_empty() && radiance.projection.is_empty() {
+            return if radiance.clusters.receivers.is_empty()
+                && radiance.clusters.projection.is_empty()
+            {
                 Ok(())
             } else {
-                Err("radiance transport without bands")
+                Err("radiance transport without bands".into())
             };
         }
         if radiance.bands > MAX_RADIANCE_BANDS {
-            return Err("radiance transport bands outside 1..=5");
+            return Err("radiance transport bands outside 1..=5".into());
         }
-        if radiance.rank == 0 {
-            return Err("no principal vectors per radiance cluster");
-        }
-        if radiance.receiver_offsets.len() != radiance.probe_offsets.len()
-            || !offsets_are_monotonic(&radiance.receiver_offsets, radiance.receivers.len())
-            || !offsets_are_monotonic(&radiance.probe_offsets, radiance.cluster_probes.len())
-        {
-            return Err("radiance cluster offsets are inconsistent");
-        }
-        let mut seen = vec![false; self.receiver_count];
-        for &receiver in &radiance.receivers {
-            match seen.get_mut(receiver as usize) {
-                Some(slot) if !*slot => *slot = true,
-                _ => return Err("a glossy receiver does not exist or is listed twice"),
-            }
-        }
-        if radiance
-            .cluster_probes
-            .iter()
-            .any(|&probe| probe as usize >= self.probes.len())
-        {
-            return Err("a radiance cluster names a probe that does not exist");
-        }
-        let coefficients = sh::coefficient_count(self.bands);
-        if radiance.projection.len() != radiance.rank * coefficients * radiance.cluster_probes.len()
-            || radiance.reconstruction.len()
-                != radiance.rank * radiance.outputs() * radiance.receivers.len()
-        {
-            return Err("radiance matrices do not match their sizes");
-        }
-        Ok(())
+        radiance
+            .clusters
+            .validate(
+                self.receiver_count,
+                self.probes.len(),
+                coefficients,
+                radiance.outputs(),
+            )
+            .map_err(|message| format!("radiance transport: {message}"))
     }
 }
 
@@ -579,46 +597,26 @@ fn radiance_transport(
     let compressed: Vec<ClusterOutput> = clusters
         .par_iter()
         .map_init(
-            || (TransportScratch::new(settings.bands), Vec::new()),
-            |(scratch, rows), members| {
-                let mut columns: Vec<u32> = members
-                    .iter()
-                    .flat_map(|&receiver| nearby[receiver as usize].iter().copied())
-                    .collect();
-                columns.sort_unstable();
-                columns.dedup();
-                let width = columns.len() * coefficients;
-                let mut matrix = vec![0.0f32; members.len() * outputs * width];
-                let mut valid_samples = 0u64;
-                for (local, &receiver) in members.iter().enumerate() {
-                    let own = &nearby[receiver as usize];
-                    let own_width = own.len() * coefficients;
-                    rows.clear();
-                    rows.resize(outputs * own_width, 0.0);
-                    valid_samples += transport::radiance_rows(
-                        context,
-                        probes,
-                        receiver as usize,
-                        own,
-                        &settings,
-                        bands,
-                        scratch,
-                        rows,
-                    ) as u64;
-                    for output in 0..outputs {
-                        let target = &mut matrix[(local * outputs + output) * width..][..width];
-                        for (slot, probe) in own.iter().enumerate() {
-                            let column = columns
-                                .binary_search(probe)
-                                .expect("nearby probe is a column");
-                            target[column * coefficients..(column + 1) * coefficients]
-                                .copy_from_slice(
-                                    &rows[output * own_width + slot * coefficients..]
-                                        [..coefficients],
-                                );
-                        }
-                    }
-                }
+            || TransportScratch::new(settings.bands),
+            |scratch, members| {
+                let (matrix, columns, valid_samples) = cluster_matrix(
+                    nearby,
+                    members,
+                    coefficients,
+                    outputs,
+                    |receiver, own, rows| {
+                        transport::radiance_rows(
+                            context,
+                            probes,
+                            receiver as usize,
+                            own,
+                            &settings,
+                            bands,
+                            scratch,
+                            rows,
+                        )
+                    },
+                );
                 let output = compress_cluster(
                     &matrix,
                     members.len() * outputs,
@@ -633,26 +631,10 @@ fn radiance_transport(
         )
         .collect();
     progress.finish();
-    let mut radiance = RadianceTransport {
+    RadianceTransport {
         bands,
-        rank,
-        receiver_offsets: vec![0],
-        probe_offsets: vec![0],
-        ..Default::default()
-    };
-    for (members, output) in clusters.iter().zip(compressed) {
-        radiance.receivers.extend_from_slice(members);
-        radiance
-            .receiver_offsets
-            .push(radiance.receivers.len() as u32);
-        radiance.cluster_probes.extend_from_slice(&output.probes);
-        radiance
-            .probe_offsets
-            .push(radiance.cluster_probes.len() as u32);
-        radiance.projection.extend(output.projection);
-        radiance.reconstruction.extend(output.reconstruction);
+        clusters: ClusterSet::assemble(rank, &clusters, compressed).0,
     }
-    radiance
 }
 
 /// One compressed cluster.
@@ -677,6 +659,32 @@ pub fn cluster_transport(
     scratch: &mut TransportScratch,
 ) -> (Vec<f32>, Vec<u32>, u64) {
     let coefficients = sh::coefficient_count(settings.bands);
+    cluster_matrix(nearby, members, coefficients, 1, |receiver, own, row| {
+        transport::transport_row(
+            context,
+            probes,
+            receiver as usize,
+            own,
+            settings,
+            scratch,
+            row,
+        )
+    })
+}
+
+/// A cluster's matrix with `outputs` rows per member (member `local` owns
+/// rows from `local * outputs` on) and the members' nearby probes times C
+/// as columns. `rows_of(receiver, nearby probes, rows)` fills one member's
+/// rows, each its probes times C long, and returns its valid samples; the
+/// rows are scattered into the probes' columns. Returns (matrix, column
+/// probes, valid samples).
+fn cluster_matrix(
+    nearby: &[Vec<u32>],
+    members: &[u32],
+    coefficients: usize,
+    outputs: usize,
+    mut rows_of: impl FnMut(u32, &[u32], &mut [f32]) -> u32,
+) -> (Vec<f32>, Vec<u32>, u64) {
     let mut columns: Vec<u32> = members
         .iter()
         .flat_map(|&receiver| nearby[receiver as usize].iter().copied())
@@ -684,29 +692,25 @@ pub fn cluster_transport(
     columns.sort_unstable();
     columns.dedup();
     let width = columns.len() * coefficients;
-    let mut matrix = vec![0.0f32; members.len() * width];
-    let mut row = Vec::new();
+    let mut matrix = vec![0.0f32; members.len() * outputs * width];
+    let mut rows = Vec::new();
     let mut valid_samples = 0u64;
     for (local, &receiver) in members.iter().enumerate() {
         let own = &nearby[receiver as usize];
-        row.clear();
-        row.resize(own.len() * coefficients, 0.0);
-        valid_samples += transport::transport_row(
-            context,
-            probes,
-            receiver as usize,
-            own,
-            settings,
-            scratch,
-            &mut row,
-        ) as u64;
-        let target = &mut matrix[local * width..(local + 1) * width];
+        let own_width = own.len() * coefficients;
+        rows.clear();
+        rows.resize(outputs * own_width, 0.0);
+        valid_samples += rows_of(receiver, own, &mut rows) as u64;
         for (slot, probe) in own.iter().enumerate() {
             let column = columns
                 .binary_search(probe)
                 .expect("nearby probe is a column");
-            target[column * coefficients..(column + 1) * coefficients]
-                .copy_from_slice(&row[slot * coefficients..(slot + 1) * coefficients]);
+            for output in 0..outputs {
+                let target = (local * outputs + output) * width + column * coefficients;
+                matrix[target..target + coefficients].copy_from_slice(
+                    &rows[output * own_width + slot * coefficients..][..coefficients],
+                );
+            }
         }
     }
     (matrix, columns, valid_samples)

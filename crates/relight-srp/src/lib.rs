@@ -103,7 +103,8 @@ mod runtime;
 pub mod transport;
 
 pub use bake::{
-    cluster_transport, sample_directions, BakeStats, RadianceTransport, SrpBake, BACK_FACE, ESCAPED,
+    cluster_transport, sample_directions, BakeStats, ClusterSet, RadianceTransport, SrpBake,
+    BACK_FACE, ESCAPED,
 };
 pub use runtime::{RuntimeSettings, Srp};
 
@@ -283,7 +284,7 @@ impl TechniqueKind for SrpKind {
             bake.radius,
             bake.stats.receivers_short_of_probes,
             bake.stats.min_probes,
-            bake.cluster_count(),
+            bake.clusters.cluster_count(),
             bake.stats.captured_energy * 100.0
         );
         Ok(bake.encode())

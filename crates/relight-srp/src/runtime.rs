@@ -2,7 +2,7 @@
 //! SH, per-cluster projection onto the principal vectors, reconstruction
 //! per receiver, dilation.
 
-use crate::bake::{SrpBake, BACK_FACE};
+use crate::bake::{ClusterSet, SrpBake, BACK_FACE};
 use crate::kernels;
 use crate::probes::falloff_weight;
 use glam::Vec3;
@@ -104,13 +104,13 @@ impl Srp {
         let visible_normals = pick(&receivers.normals);
         let visible_albedos = pick(&receivers.albedos);
         let probe_count = bake.probes.len();
-        let cluster_count = bake.cluster_count();
         let texel_of = |receiver: u32| -> u32 {
             let [x, y] = receivers.texels[receiver as usize];
             y * context.atlas.width + x
         };
         let sorted_texels = bake
-            .cluster_receivers
+            .clusters
+            .receivers
             .iter()
             .map(|&r| texel_of(r))
             .collect();
@@ -124,9 +124,17 @@ impl Srp {
             visible_normals,
             visible_albedos,
             probe_radiance: vec![0.0; probe_count * 3 * coefficients],
-            light_basis: vec![0.0; cluster_count * 3 * bake.rank],
-            radiance_light_basis: vec![0.0; bake.radiance.cluster_count() * 3 * bake.radiance.rank],
-            glossy_sh: vec![0.0; bake.radiance.receivers.len() * 3 * bake.radiance.outputs()],
+            light_basis: vec![0.0; bake.clusters.cluster_count() * 3 * bake.clusters.rank],
+            radiance_light_basis: vec![
+                0.0;
+                bake.radiance.clusters.cluster_count()
+                    * 3
+                    * bake.radiance.clusters.rank
+            ],
+            glossy_sh: vec![
+                0.0;
+                bake.radiance.clusters.receivers.len() * 3 * bake.radiance.outputs()
+            ],
             glossy_slot_of_texel: glossy_slots(&context, &bake),
             sorted_texels,
             visible_texels,
@@ -291,14 +299,10 @@ impl Srp {
     /// Light basis vector of every cluster: Sigma_c V^T times the probe
     /// radiance of the cluster's probes (section 4.5.2).
     fn project_clusters(&mut self) {
-        let bake = &self.bake;
         project_cluster_set(
+            &self.bake.clusters,
             &self.probe_radiance,
             self.coefficients,
-            bake.rank,
-            &bake.cluster_probes,
-            &bake.probe_offsets,
-            &bake.projection,
             &mut self.light_basis,
         );
     }
@@ -308,28 +312,26 @@ impl Srp {
     fn transport_radiance(&mut self) {
         let bake = &self.bake;
         let radiance = &bake.radiance;
+        let clusters = &radiance.clusters;
         project_cluster_set(
+            clusters,
             &self.probe_radiance,
             self.coefficients,
-            radiance.rank,
-            &radiance.cluster_probes,
-            &radiance.probe_offsets,
-            &radiance.projection,
             &mut self.radiance_light_basis,
         );
-        let rank = radiance.rank;
+        let rank = clusters.rank;
         let outputs = radiance.outputs();
         let light_basis = &self.radiance_light_basis;
-        let offsets = &radiance.receiver_offsets;
+        let offsets = &clusters.receiver_offsets;
         let output = kernels::DisjointWriter::new(&mut self.glossy_sh);
-        (0..radiance.cluster_count())
+        (0..clusters.cluster_count())
             .into_par_iter()
             .for_each(|cluster| {
                 let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
                 for slot in offsets[cluster] as usize..offsets[cluster + 1] as usize {
                     for m in 0..outputs {
                         let row = (slot * outputs + m) * rank;
-                        let weights = &radiance.reconstruction[row..row + rank];
+                        let weights = &clusters.reconstruction[row..row + rank];
                         let value = kernels::reconstruct(weights, basis, rank);
                         for channel in 0..3 {
                             // SAFETY: clusters own disjoint slot ranges.
@@ -398,27 +400,27 @@ impl Srp {
     /// Irradiance per receiver: U_c times the cluster's light basis,
     /// written straight into the receiver's lightmap texel.
     fn reconstruct(&mut self) {
-        let bake = &self.bake;
-        let rank = bake.rank;
+        let clusters = &self.bake.clusters;
+        let rank = clusters.rank;
         let light_basis = &self.light_basis;
         let texels = &self.sorted_texels;
         let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
-        let total = bake.cluster_receivers.len();
+        let total = clusters.receivers.len();
         (0..total.div_ceil(RECEIVER_CHUNK))
             .into_par_iter()
             .for_each(|chunk| {
                 let mut values = [Rgb::ZERO; RECEIVER_CHUNK];
                 let start = chunk * RECEIVER_CHUNK;
                 let end = (start + RECEIVER_CHUNK).min(total);
-                let mut cluster = bake
+                let mut cluster = clusters
                     .receiver_offsets
                     .partition_point(|&offset| offset as usize <= start)
                     - 1;
                 let mut index = start;
                 while index < end {
-                    let cluster_end = (bake.receiver_offsets[cluster + 1] as usize).min(end);
+                    let cluster_end = (clusters.receiver_offsets[cluster + 1] as usize).min(end);
                     kernels::reconstruct_many(
-                        &bake.reconstruction[index * rank..cluster_end * rank],
+                        &clusters.reconstruction[index * rank..cluster_end * rank],
                         &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
                         rank,
                         &mut values[index - start..cluster_end - start],
@@ -427,7 +429,7 @@ impl Srp {
                     cluster += 1;
                 }
                 for (value, &texel) in values.iter().zip(&texels[start..end]) {
-                    // SAFETY: cluster_receivers is a permutation (checked
+                    // SAFETY: the clusters' receivers are a permutation (checked
                     // when the bake is decoded) and receivers own distinct
                     // texels, so every texel is written by one sorted index.
                     unsafe { lightmap.write(texel as usize, value.max(Rgb::ZERO)) };
@@ -503,19 +505,18 @@ impl Srp {
 /// set of clusters (the irradiance's or the radiance's), into
 /// `light_basis[(cluster * 3 + channel) * rank + k]`.
 fn project_cluster_set(
+    clusters: &ClusterSet,
     probe_radiance: &[f32],
     coefficients: usize,
-    rank: usize,
-    cluster_probes: &[u32],
-    probe_offsets: &[u32],
-    projection: &[u16],
     light_basis: &mut [f32],
 ) {
+    let rank = clusters.rank;
+    let (probe_offsets, projection) = (&clusters.probe_offsets, &clusters.projection);
     light_basis
         .par_chunks_mut(3 * rank)
         .enumerate()
         .for_each_init(Vec::new, |gathered, (cluster, out)| {
-            let probes = &cluster_probes
+            let probes = &clusters.probes
                 [probe_offsets[cluster] as usize..probe_offsets[cluster + 1] as usize];
             let width = probes.len() * coefficients;
             // Channel-major copy of the cluster's probe radiance, so each
@@ -544,7 +545,7 @@ fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
         return Vec::new();
     }
     let mut slot_of_receiver = vec![u32::MAX; bake.receiver_count];
-    for (slot, &receiver) in radiance.receivers.iter().enumerate() {
+    for (slot, &receiver) in radiance.clusters.receivers.iter().enumerate() {
         slot_of_receiver[receiver as usize] = slot as u32;
     }
     context
@@ -700,8 +701,8 @@ impl Technique for Srp {
                 format!(
                     "{:.1} % valid samples; {} clusters, {} vectors each, {:.2} % of the energy kept",
                     stats.valid_sample_fraction * 100.0,
-                    bake.cluster_count(),
-                    bake.rank,
+                    bake.clusters.cluster_count(),
+                    bake.clusters.rank,
                     stats.captured_energy * 100.0
                 ),
             ),
@@ -713,9 +714,9 @@ impl Technique for Srp {
                     format!(
                         "order {} for {} glossy receivers in {} clusters, {} vectors each",
                         bake.radiance.bands - 1,
-                        bake.radiance.receivers.len(),
-                        bake.radiance.cluster_count(),
-                        bake.radiance.rank
+                        bake.radiance.clusters.receivers.len(),
+                        bake.radiance.clusters.cluster_count(),
+                        bake.radiance.clusters.rank
                     )
                 },
             ),
@@ -731,19 +732,15 @@ impl Technique for Srp {
         vec![
             MemoryEntry::new(
                 "cluster projection matrices (f16)",
-                bake.projection.len() * 2,
+                bake.clusters.projection.len() * 2,
             ),
             MemoryEntry::new(
                 "receiver reconstruction matrices (f16)",
-                bake.reconstruction.len() * 2,
+                bake.clusters.reconstruction.len() * 2,
             ),
             MemoryEntry::new(
                 "cluster receiver and probe lists",
-                (bake.cluster_receivers.len()
-                    + bake.receiver_offsets.len()
-                    + bake.cluster_probes.len()
-                    + bake.probe_offsets.len())
-                    * 4,
+                bake.clusters.list_bytes(),
             ),
             MemoryEntry::new("probe sample tables", bake.sample_targets.len() * 4),
             MemoryEntry::new("SH basis table", self.basis_table.len() * 4),
@@ -760,12 +757,7 @@ impl Technique for Srp {
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
-                (bake.radiance.projection.len() + bake.radiance.reconstruction.len()) * 2
-                    + (bake.radiance.receivers.len()
-                        + bake.radiance.receiver_offsets.len()
-                        + bake.radiance.cluster_probes.len()
-                        + bake.radiance.probe_offsets.len())
-                        * 4,
+                bake.radiance.clusters.matrix_bytes() + bake.radiance.clusters.list_bytes(),
             ),
             MemoryEntry::new(
                 "glossy receivers' radiance SH and texel slots",

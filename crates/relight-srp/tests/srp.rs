@@ -240,17 +240,19 @@ fn corrupt_bakes_are_refused() {
     // Consistent in every size yet without principal vectors: the run
     // time would split its buffers into chunks of zero.
     let mut rankless = decoded.clone();
-    rankless.rank = 0;
-    rankless.projection.clear();
-    rankless.reconstruction.clear();
+    rankless.clusters.rank = 0;
+    rankless.clusters.projection.clear();
+    rankless.clusters.reconstruction.clear();
     assert!(SrpBake::decode(&rankless.encode()).is_err());
     let mut rankless_radiance = decoded.clone();
     rankless_radiance.radiance = relight_srp::RadianceTransport {
         bands: 2,
-        rank: 0,
-        receiver_offsets: vec![0],
-        probe_offsets: vec![0],
-        ..Default::default()
+        clusters: relight_srp::ClusterSet {
+            rank: 0,
+            receiver_offsets: vec![0],
+            probe_offsets: vec![0],
+            ..Default::default()
+        },
     };
     assert!(SrpBake::decode(&rankless_radiance.encode()).is_err());
     assert!(SrpBake::decode(&decoded.encode()).is_ok());
