@@ -452,7 +452,7 @@ impl PicBake {
             && link_nodes.len() == total
             && link_nodes
                 .iter()
-                .all(|&node| (node as usize) < node_count.max(1))
+                .all(|&node| (node as usize) < node_count)
             && if runtime {
                 link_factors.len() == total
                     && link_cones.len() == total

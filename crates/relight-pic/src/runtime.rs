@@ -120,6 +120,16 @@ impl Pic {
                 }
             }
         }
+        // The cache-lighting kernels gather flux without bounds checks: every
+        // link node must name a hierarchy node (checked here once, not per
+        // cache per frame).
+        let flux = vec![Vec3::ZERO; bake.hierarchy.node_count()];
+        assert!(
+            bake.link_nodes
+                .iter()
+                .all(|&node| (node as usize) < flux.len()),
+            "a PIC link names a missing hierarchy node"
+        );
         let mut technique = Pic {
             surfel_taps: Vec::new(),
             surfel_basis,
@@ -127,7 +137,7 @@ impl Pic {
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
             cosine_factors: std::array::from_fn(sh::cosine_lobe_factor),
-            flux: vec![Vec3::ZERO; bake.hierarchy.node_count()],
+            flux,
             cache_sh: vec![0.0; bake.cache_count() * stride],
             stride,
             pull_subtrees: Vec::new(),
@@ -449,62 +459,64 @@ impl Pic {
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
-            .for_each(|(chunk, rows)| {
-                let mut scratch = LinkScratch::default();
-                for (offset, row) in rows.chunks_exact_mut(stride).enumerate() {
-                    let cache = chunk * 64 + offset;
-                    let range = cache * links..(cache + 1) * links;
-                    let (luma, rest) = row.split_at_mut(luma_count);
-                    let (co, cg) = rest.split_at_mut(chroma_count);
-                    if bake.projected_bands > 0 {
-                        let count = bands * bands;
-                        let coefficients =
-                            &bake.link_coefficients[range.start * count..range.end * count];
-                        let nodes = &bake.link_nodes[range];
-                        // SAFETY: `projected_kernel` picks the vector kernel
-                        // only where the CPU has it.
-                        unsafe {
-                            projected_kernel(
-                                coefficients,
-                                nodes,
-                                flux,
-                                count,
-                                chroma_count,
-                                luma,
-                                co,
-                                cg,
-                            )
-                        };
-                    } else {
-                        let slice = LinkSlice {
-                            nodes: &bake.link_nodes[range.clone()],
-                            factors: &bake.link_factors[range.clone()],
-                            cones: &bake.link_cones[range.clone()],
-                            directions: &bake.link_directions[range],
-                        };
-                        if fast {
-                            // SAFETY: `kernels_available` checked the CPU.
+            // Only the runtime-projection kernel uses a scratch: made once
+            // per rayon job, and only when needed.
+            .for_each_init(
+                || None::<LinkScratch>,
+                |scratch, (chunk, rows)| {
+                    for (offset, row) in rows.chunks_exact_mut(stride).enumerate() {
+                        let cache = chunk * 64 + offset;
+                        let range = cache * links..(cache + 1) * links;
+                        let (luma, rest) = row.split_at_mut(luma_count);
+                        let (co, cg) = rest.split_at_mut(chroma_count);
+                        if bake.projected_bands > 0 {
+                            let count = bands * bands;
+                            let coefficients =
+                                &bake.link_coefficients[range.start * count..range.end * count];
+                            let nodes = &bake.link_nodes[range];
+                            // SAFETY: `projected_kernel` picks the vector kernel
+                            // only where the CPU has it; `Pic::new` checked that
+                            // every link node indexes `flux`.
                             unsafe {
-                                light_cache_avx2(
-                                    &slice,
+                                projected_kernel(
+                                    coefficients,
+                                    nodes,
                                     flux,
-                                    &mut scratch,
-                                    bands,
-                                    chroma,
+                                    count,
+                                    chroma_count,
                                     luma,
                                     co,
                                     cg,
                                 )
                             };
                         } else {
-                            kernels::light_cache_general(&slice, flux, bands, chroma, luma, co, cg);
+                            let slice = LinkSlice {
+                                nodes: &bake.link_nodes[range.clone()],
+                                factors: &bake.link_factors[range.clone()],
+                                cones: &bake.link_cones[range.clone()],
+                                directions: &bake.link_directions[range],
+                            };
+                            if fast {
+                                let scratch = scratch.get_or_insert_with(LinkScratch::default);
+                                // SAFETY: `kernels_available` checked the CPU and
+                                // `Pic::new` the link nodes.
+                                unsafe {
+                                    light_cache_avx2(
+                                        &slice, flux, scratch, bands, chroma, luma, co, cg,
+                                    )
+                                };
+                            } else {
+                                kernels::light_cache_general(
+                                    &slice, flux, bands, chroma, luma, co, cg,
+                                );
+                            }
+                        }
+                        for value in row.iter_mut() {
+                            *value *= inverse_scale;
                         }
                     }
-                    for value in row.iter_mut() {
-                        *value *= inverse_scale;
-                    }
-                }
-            });
+                },
+            );
     }
 
     /// Diffuse irradiance (RGB) at a point of the static scene.
@@ -581,6 +593,10 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 }
 
 /// The lane kernel compiled for AVX2 and FMA, one instance per band pair.
+///
+/// # Safety
+/// AVX2 and FMA must be available, and every node in `links.nodes` must
+/// index `flux` (see [`kernels::light_cache`]).
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2,fma"))]
 #[allow(clippy::too_many_arguments)]
 unsafe fn light_cache_avx2(
@@ -680,12 +696,8 @@ unsafe fn light_cache_projected_avx2(
 ) {
     use std::arch::x86_64::*;
     debug_assert!(count <= 16 && chroma_count <= count);
+    debug_assert!(nodes.iter().all(|&node| (node as usize) < flux.len()));
     assert_eq!(coefficients.len(), nodes.len() * count);
-    let largest_node = nodes.iter().copied().max().unwrap_or(0) as usize;
-    assert!(
-        nodes.is_empty() || largest_node < flux.len(),
-        "link to a missing node"
-    );
     const PREFETCH_AHEAD: usize = 16;
     let vector_links = if coefficients.len() >= 16 {
         nodes.len().min((coefficients.len() - 16) / count + 1)
