@@ -70,11 +70,13 @@ pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
     evaluate_by_recurrence(direction, bands, out);
 }
 
-/// The first four bands in closed form: the recurrence's Legendre
-/// polynomials in z times Re and Im of (x + i y)^m, with the normalisation
-/// folded into each constant (same convention, no Condon-Shortley phase).
-#[inline]
-fn evaluate_four_bands(direction: Vec3) -> [f32; 16] {
+/// The first four bands (16 coefficients) in closed form: the
+/// recurrence's Legendre polynomials in z times Re and Im of (x + i y)^m,
+/// with the normalisation folded into each constant (same convention, no
+/// Condon-Shortley phase). Inlined so that lane loops vectorise it and drop
+/// the bands they do not use.
+#[inline(always)]
+pub fn evaluate_four_bands(direction: Vec3) -> [f32; 16] {
     let (x, y, z) = (direction.x, direction.y, direction.z);
     let (z2, xx_minus_yy, two_xy) = (z * z, x * x - y * y, 2.0 * x * y);
     // Re and Im of (x + i y)^3.

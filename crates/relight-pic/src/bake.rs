@@ -450,9 +450,7 @@ impl PicBake {
         let links_ok = links_per_cache.is_multiple_of(LINK_ALIGNMENT)
             && projected_bands <= relight_core::sh::MAX_BANDS
             && link_nodes.len() == total
-            && link_nodes
-                .iter()
-                .all(|&node| (node as usize) < node_count)
+            && link_nodes.iter().all(|&node| (node as usize) < node_count)
             && if runtime {
                 link_factors.len() == total
                     && link_cones.len() == total

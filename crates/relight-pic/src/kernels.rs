@@ -32,6 +32,9 @@ fn half_to_f32(bits: u16) -> f32 {
 /// fluxes (19 KiB) stay in L1 while the accumulation reads them.
 const CHUNK_BLOCKS: usize = 32;
 
+/// The SH band of each of the first 16 coefficients.
+const BAND_OF_COEFFICIENT: [usize; 16] = [0, 1, 1, 1, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3];
+
 /// One block's per-lane inputs to the accumulation: the SH basis already
 /// times the link's band weight, and the linked node's YCoCg flux.
 #[derive(Clone, Copy)]
@@ -166,28 +169,11 @@ fn prepare_block<const BANDS: usize>(
             factor * PI * c * (1.0 - c2),
             factor * (0.25 * PI) * (6.0 * c2 - 5.0 * c2 * c2 - 1.0),
         ];
-        let (x2, y2, z2) = (x * x, y * y, z * z);
-        basis[0][lane] = weight[0] * 0.282_094_8;
-        basis[1][lane] = weight[1] * 0.488_602_5 * y;
-        basis[2][lane] = weight[1] * 0.488_602_5 * z;
-        basis[3][lane] = weight[1] * 0.488_602_5 * x;
-        if BANDS > 2 {
-            basis[4][lane] = weight[2] * 1.092_548_4 * x * y;
-            basis[5][lane] = weight[2] * 1.092_548_4 * y * z;
-            basis[6][lane] = weight[2] * 0.315_391_57 * (3.0 * z2 - 1.0);
-            basis[7][lane] = weight[2] * 1.092_548_4 * x * z;
-            basis[8][lane] = weight[2] * 0.546_274_2 * (x2 - y2);
+        let values = sh::evaluate_four_bands(Vec3::new(x, y, z));
+        for (index, value) in values.iter().enumerate().take(BANDS * BANDS) {
+            basis[index][lane] = weight[BAND_OF_COEFFICIENT[index]] * value;
         }
-        if BANDS > 3 {
-            basis[9][lane] = weight[3] * 0.590_043_6 * y * (3.0 * x2 - y2);
-            basis[10][lane] = weight[3] * 2.890_611_4 * x * y * z;
-            basis[11][lane] = weight[3] * 0.457_045_8 * y * (5.0 * z2 - 1.0);
-            basis[12][lane] = weight[3] * 0.373_176_34 * z * (5.0 * z2 - 3.0);
-            basis[13][lane] = weight[3] * 0.457_045_8 * x * (5.0 * z2 - 1.0);
-            basis[14][lane] = weight[3] * 1.445_305_7 * z * (x2 - y2);
-            basis[15][lane] = weight[3] * 0.590_043_6 * x * (x2 - 3.0 * y2);
-        }
-        // SAFETY: `light_cache` checked every node against `flux.len()`.
+        // SAFETY: the caller of `light_cache` vouches for every node.
         let node_flux = unsafe { *flux.get_unchecked(nodes[lane] as usize) };
         block.flux[0][lane] = node_flux.x;
         block.flux[1][lane] = node_flux.y;
