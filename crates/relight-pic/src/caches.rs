@@ -24,13 +24,11 @@ pub fn cache_atlas(
     // sub-quadratic, so iterate on the measured count.
     let mut metres = context.atlas.metres_per_texel.max(1e-4) * (own as f32 / target as f32).sqrt();
     let mut best: Option<(Atlas, f32)> = None;
+    // Trial atlases are only counted; relocation (rays per receiver, and it
+    // never changes the count) runs once, on the chosen one.
     for _ in 0..6 {
-        let atlas = relight_technique::build_atlas(
-            &context.scene,
-            &context.bvh,
-            TexelDensity::MetresPerTexel(metres),
-        )
-        .map_err(|error| TechniqueError::Other(error.to_string()))?;
+        let atlas = Atlas::build(&context.scene, TexelDensity::MetresPerTexel(metres))
+            .map_err(|error| TechniqueError::Other(error.to_string()))?;
         let count = atlas.receivers.len();
         let ratio = count as f32 / target as f32;
         let better = best.as_ref().is_none_or(|(previous, _)| {
@@ -44,7 +42,8 @@ pub fn cache_atlas(
         }
         metres *= ratio.sqrt().clamp(0.5, 2.0);
     }
-    let (atlas, metres) = best.expect("at least one atlas was built");
+    let (mut atlas, metres) = best.expect("at least one atlas was built");
+    relight_technique::relocate_receivers(&context.scene, &context.bvh, &mut atlas);
     Ok((Some(atlas), metres))
 }
 

@@ -140,28 +140,27 @@ pub fn build_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<At
 /// surface meets its own moves a quarter texel away from it, for the same
 /// reason. Receivers a surface
 /// covers entirely stay where they are: nothing of them is visible.
-pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) -> usize {
+pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
     use rayon::prelude::*;
     let texel = atlas.metres_per_texel;
     if texel.is_nan() || texel <= 0.0 {
-        return 0;
+        return;
     }
     let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
     let reach = texel * std::f32::consts::FRAC_1_SQRT_2;
     let lift = (texel * 1e-3).max(epsilon);
     let margin = (texel * 0.05).max(4.0 * epsilon);
     let receivers = &mut atlas.receivers;
-    let moved: Vec<Option<Vec3>> = receivers
+    receivers
         .positions
-        .par_iter()
+        .par_iter_mut()
         .zip(&receivers.normals)
-        .map(|(&start, &normal)| {
+        .for_each(|(position, &normal)| {
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
-            let mut position = start;
             // A corner can put a receiver behind two walls; each step
             // crosses one.
             for pass in 0..3 {
-                let origin = position + normal * lift;
+                let origin = *position + normal * lift;
                 let mut behind: Option<(f32, Vec3)> = None;
                 let mut touching: Option<(f32, Vec3)> = None;
                 for step in 0..8 {
@@ -206,28 +205,18 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) -> usize 
                     // The middle of what is left of the texel beyond the
                     // wall, so the receiver stands for its visible part.
                     let beyond = ((0.5 * texel - distance) * 0.5).max(margin);
-                    position += direction * (distance + beyond);
+                    *position += direction * (distance + beyond);
                 } else if let (0, Some((distance, direction))) = (pass, touching) {
                     // On the line where another surface meets this one (a
                     // chart edge through the texel centre): the middle of
                     // the texel's side that faces away from it.
-                    position -= direction * ((0.5 * texel - distance) * 0.5);
+                    *position -= direction * ((0.5 * texel - distance) * 0.5);
                     break;
                 } else {
                     break;
                 }
             }
-            (position != start).then_some(position)
-        })
-        .collect();
-    let mut count = 0;
-    for (position, moved) in receivers.positions.iter_mut().zip(moved) {
-        if let Some(moved) = moved {
-            *position = moved;
-            count += 1;
-        }
-    }
-    count
+        });
 }
 
 /// Directions that test whether a point is enclosed: the axes and the cube
