@@ -22,8 +22,10 @@ pub struct BakeHeader {
     pub scene_fingerprint: u64,
 }
 
-/// FNV-1a over the geometry, materials and atlas layout: a bake is only
-/// valid for the scene (and lightmap) it was made for.
+/// FNV-1a over the geometry, materials, atlas layout and receiver
+/// positions: a bake is only valid for the scene (and lightmap) it was made
+/// for, and bakes that store per-receiver data depend on where receivers
+/// stand (relocation may move them without changing the layout).
 pub fn scene_fingerprint(scene: &Scene, atlas: &Atlas) -> u64 {
     let mut hash = 0xcbf2_9ce4_8422_2325u64;
     let mut feed = |bytes: &[u8]| {
@@ -58,6 +60,11 @@ pub fn scene_fingerprint(scene: &Scene, atlas: &Atlas) -> u64 {
     feed(&atlas.width.to_le_bytes());
     feed(&atlas.height.to_le_bytes());
     feed(&(atlas.receivers.len() as u64).to_le_bytes());
+    for position in &atlas.receivers.positions {
+        for value in position.to_array() {
+            feed(&value.to_le_bytes());
+        }
+    }
     hash
 }
 
