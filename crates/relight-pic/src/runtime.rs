@@ -174,24 +174,15 @@ impl Pic {
     /// The four lightmap caches around a point and their bilinear weights
     /// (empty texels dropped, the rest renormalised).
     fn lightmap_taps(&self, triangle: u32, barycentric: Vec2) -> [(u32, f32); 4] {
-        let atlas = self.atlas();
-        let uv = atlas.uv_of(triangle, barycentric) - Vec2::splat(0.5);
-        let (x0, y0) = (uv.x.floor(), uv.y.floor());
-        let (fx, fy) = (uv.x - x0, uv.y - y0);
         let mut taps = [(NO_CACHE, 0.0f32); 4];
         let mut total = 0.0;
-        for (slot, (dx, dy, weight)) in [
-            (0, 0, (1.0 - fx) * (1.0 - fy)),
-            (1, 0, fx * (1.0 - fy)),
-            (0, 1, (1.0 - fx) * fy),
-            (1, 1, fx * fy),
-        ]
-        .into_iter()
-        .enumerate()
+        for (slot, (texel, weight)) in self
+            .atlas()
+            .bilinear_texels(triangle, barycentric)
+            .into_iter()
+            .enumerate()
         {
-            let x = (x0 as i64 + dx).clamp(0, atlas.width as i64 - 1) as usize;
-            let y = (y0 as i64 + dy).clamp(0, atlas.height as i64 - 1) as usize;
-            let cache = self.cache_of_texel[y * atlas.width as usize + x];
+            let cache = self.cache_of_texel[texel];
             if cache != NO_CACHE && weight > 0.0 {
                 taps[slot] = (cache, weight);
                 total += weight;

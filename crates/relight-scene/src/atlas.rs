@@ -347,6 +347,27 @@ impl Atlas {
     }
 
     /// Bilinear lookup of a dilated lightmap at a point on a triangle.
+    /// The four texels around a surface point for a bilinear lookup (texel
+    /// centres at half-integer UVs, clamped at the atlas edge), as (texel
+    /// index, weight) in the order (x0, y0), (x1, y0), (x0, y1), (x1, y1).
+    /// For lookups that skip texels with nothing in them and renormalise.
+    pub fn bilinear_texels(&self, triangle: u32, barycentric: Vec2) -> [(usize, f32); 4] {
+        let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
+        let (x0, y0) = (uv.x.floor(), uv.y.floor());
+        let (fx, fy) = (uv.x - x0, uv.y - y0);
+        [
+            (0, 0, (1.0 - fx) * (1.0 - fy)),
+            (1, 0, fx * (1.0 - fy)),
+            (0, 1, (1.0 - fx) * fy),
+            (1, 1, fx * fy),
+        ]
+        .map(|(dx, dy, weight)| {
+            let x = (x0 as i64 + dx).clamp(0, self.width as i64 - 1) as usize;
+            let y = (y0 as i64 + dy).clamp(0, self.height as i64 - 1) as usize;
+            (y * self.width as usize + x, weight)
+        })
+    }
+
     pub fn sample(&self, lightmap: &[Rgb], triangle: u32, barycentric: Vec2) -> Rgb {
         let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
         let x0 = uv.x.floor();

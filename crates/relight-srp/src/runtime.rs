@@ -366,20 +366,13 @@ impl Srp {
                 *value *= band_factors[band];
             }
         }
-        let atlas = &self.context.atlas;
-        let uv = atlas.uv_of(point.triangle, point.barycentric) - glam::Vec2::splat(0.5);
-        let (x0, y0) = (uv.x.floor(), uv.y.floor());
-        let (fx, fy) = (uv.x - x0, uv.y - y0);
         let (mut sum, mut total) = (Rgb::ZERO, 0.0f32);
-        for (dx, dy, weight) in [
-            (0, 0, (1.0 - fx) * (1.0 - fy)),
-            (1, 0, fx * (1.0 - fy)),
-            (0, 1, (1.0 - fx) * fy),
-            (1, 1, fx * fy),
-        ] {
-            let x = (x0 as i64 + dx).clamp(0, atlas.width as i64 - 1) as usize;
-            let y = (y0 as i64 + dy).clamp(0, atlas.height as i64 - 1) as usize;
-            let slot = self.glossy_slot_of_texel[y * atlas.width as usize + x];
+        for (texel, weight) in self
+            .context
+            .atlas
+            .bilinear_texels(point.triangle, point.barycentric)
+        {
+            let slot = self.glossy_slot_of_texel[texel];
             if slot == u32::MAX || weight <= 0.0 {
                 continue;
             }
