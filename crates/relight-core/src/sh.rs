@@ -70,6 +70,24 @@ pub fn evaluate(direction: Vec3, bands: usize, out: &mut [f32]) {
     evaluate_by_recurrence(direction, bands, out);
 }
 
+/// `factors[l] * Y_lm(direction)` for `bands` bands into
+/// `out[..bands*bands]`: the basis convolved with a zonal kernel given by
+/// its per-band factors (the cosine lobe's for irradiance, a Phong lobe's
+/// for glossy reflection), ready to dot with radiance SH.
+pub fn evaluate_filtered(
+    direction: Vec3,
+    bands: usize,
+    factors: &[f32; MAX_BANDS],
+    out: &mut [f32],
+) {
+    evaluate(direction, bands, out);
+    for (band, factor) in factors.iter().enumerate().take(bands) {
+        for value in &mut out[band * band..(band + 1) * (band + 1)] {
+            *value *= factor;
+        }
+    }
+}
+
 /// The first four bands (16 coefficients) in closed form: the
 /// recurrence's Legendre polynomials in z times Re and Im of (x + i y)^m,
 /// with the normalisation folded into each constant (same convention, no

@@ -105,20 +105,14 @@ impl Pic {
         let coefficients = settings.bands * settings.bands;
         let stride = coefficients + 2 * settings.chroma_bands * settings.chroma_bands;
         let surfels = &bake.surfels;
+        let cosine_factors = std::array::from_fn(sh::cosine_lobe_factor);
         let mut surfel_basis = vec![0.0f32; surfels.len() * coefficients];
-        let mut values = [0.0f32; 64];
         for (normal, row) in surfels
             .normals
             .iter()
             .zip(surfel_basis.chunks_exact_mut(coefficients))
         {
-            sh::evaluate(*normal, settings.bands, &mut values);
-            for band in 0..settings.bands {
-                let factor = sh::cosine_lobe_factor(band);
-                for index in band * band..(band + 1) * (band + 1) {
-                    row[index] = factor * values[index];
-                }
-            }
+            sh::evaluate_filtered(*normal, settings.bands, &cosine_factors, row);
         }
         // The cache-lighting kernels gather flux without bounds checks: every
         // link node must name a hierarchy node (checked here once, not per
@@ -136,7 +130,7 @@ impl Pic {
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
-            cosine_factors: std::array::from_fn(sh::cosine_lobe_factor),
+            cosine_factors,
             flux,
             cache_sh: vec![0.0; bake.cache_count() * stride],
             stride,
@@ -241,12 +235,7 @@ impl Pic {
     /// Band-weighted basis for a lookup: `factors[l] * Y_lm(direction)`.
     fn weighted_basis(&self, direction: Vec3, factors: &[f32; sh::MAX_BANDS]) -> [f32; 64] {
         let mut values = [0.0f32; 64];
-        sh::evaluate(direction, self.settings.bands, &mut values);
-        for band in 0..self.settings.bands {
-            for value in &mut values[band * band..(band + 1) * (band + 1)] {
-                *value *= factors[band];
-            }
-        }
+        sh::evaluate_filtered(direction, self.settings.bands, factors, &mut values);
         values
     }
 

@@ -360,12 +360,12 @@ impl Srp {
         }
         let outputs = radiance.outputs();
         let mut filtered = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
-        sh::evaluate(direction, radiance.bands, &mut filtered[..outputs]);
-        for band in 0..radiance.bands {
-            for value in &mut filtered[band * band..(band + 1) * (band + 1)] {
-                *value *= band_factors[band];
-            }
-        }
+        sh::evaluate_filtered(
+            direction,
+            radiance.bands,
+            band_factors,
+            &mut filtered[..outputs],
+        );
         let (mut sum, mut total) = (Rgb::ZERO, 0.0f32);
         for (texel, weight) in self
             .context
@@ -446,12 +446,7 @@ impl Srp {
         let bands = bands.min(self.bake.bands);
         let count = sh::coefficient_count(bands);
         let mut filtered = [0.0f32; sh::MAX_BANDS * sh::MAX_BANDS];
-        sh::evaluate(direction, bands, &mut filtered[..count]);
-        for band in 0..bands {
-            for value in &mut filtered[band * band..(band + 1) * (band + 1)] {
-                *value *= band_factors[band];
-            }
-        }
+        sh::evaluate_filtered(direction, bands, band_factors, &mut filtered[..count]);
         let radiance_of = |probe: usize| {
             let mut radiance = Rgb::ZERO;
             for channel in 0..3 {
