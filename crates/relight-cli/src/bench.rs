@@ -98,10 +98,9 @@ fn camera_points(context: &SceneContext, resolution: [u32; 2]) -> Vec<ShadedPoin
             if normal.dot(ray.direction) >= 0.0 {
                 return None;
             }
-            let [a, b, c] = scene.mesh.vertices(triangle);
             Some(ShadedPoint {
                 surface: SurfacePoint {
-                    position: a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y,
+                    position: scene.mesh.point_at(triangle, hit.barycentric),
                     normal,
                     triangle: hit.triangle,
                     barycentric: hit.barycentric,

@@ -414,10 +414,7 @@ pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, Tec
             radical_inverse(5, index + 1) as f32,
         );
         let barycentric = uniform_triangle(sample);
-        let [a, b, c] = mesh.vertices(triangle);
-        entries
-            .positions
-            .push(a + (b - a) * barycentric.x + (c - a) * barycentric.y);
+        entries.positions.push(mesh.point_at(triangle, barycentric));
         entries.normals.push(mesh.geometric_normal(triangle));
         entries.albedos.push(scene.albedo_at(triangle, barycentric));
     }
@@ -612,7 +609,6 @@ fn light_path_vertices(
                 break;
             };
             let triangle = hit.triangle as usize;
-            let [a, b, c] = scene.mesh.vertices(triangle);
             let front = scene.mesh.geometric_normal(triangle);
             let albedo = scene.albedo_at(triangle, hit.barycentric);
             let survival = luminance(albedo).clamp(0.0, 1.0);
@@ -622,7 +618,7 @@ fn light_path_vertices(
                 break;
             }
             current = VirtualLight {
-                position: a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y,
+                position: scene.mesh.point_at(triangle, hit.barycentric),
                 normal: if front.dot(direction) < 0.0 {
                     front
                 } else {

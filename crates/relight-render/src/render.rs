@@ -152,8 +152,7 @@ pub fn render_with_technique(
                     continue;
                 };
                 let triangle = hit.triangle as usize;
-                let [a, b, c] = scene.mesh.vertices(triangle);
-                let position = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+                let position = scene.mesh.point_at(triangle, hit.barycentric);
                 let front = scene.mesh.geometric_normal(triangle);
                 let seen_from_front = front.dot(ray.direction) < 0.0;
                 let normal = if seen_from_front { front } else { -front };

@@ -201,12 +201,6 @@ pub fn run_study(
     }
 }
 
-/// Prints the `count` receivers with the largest squared luminance error,
-/// and the error without the receivers the reference sees as dark
-/// (enclosed texels), which tells a technique's error from disagreement
-/// over texels nobody sees, and the error at receivers that relocation
-/// moved away from `unmoved` (their texel-centre positions) against the
-/// rest. Studies print it when `RELIGHT_STUDY_WORST` is set to a count.
 /// One line about receiver `index`: where it stands, its normal, and its
 /// luminance against the reference's.
 pub fn print_receiver(context: &SceneContext, index: usize, values: &[Rgb], reference: &[Rgb]) {
@@ -222,6 +216,12 @@ pub fn print_receiver(context: &SceneContext, index: usize, values: &[Rgb], refe
     );
 }
 
+/// Prints the `count` receivers with the largest squared luminance error,
+/// and the error without the receivers the reference sees as dark
+/// (enclosed texels), which tells a technique's error from disagreement
+/// over texels nobody sees, and the error at receivers that relocation
+/// moved away from `unmoved` (their texel-centre positions) against the
+/// rest. Studies print it when `RELIGHT_STUDY_WORST` is set to a count.
 pub fn report_worst(
     context: &SceneContext,
     unmoved: &[glam::Vec3],

@@ -29,6 +29,14 @@ impl Mesh {
         ]
     }
 
+    /// The point of `triangle` at `barycentric` (the weights of its second
+    /// and third vertices), as ray hits and samples report it.
+    #[inline]
+    pub fn point_at(&self, triangle: usize, barycentric: Vec2) -> Vec3 {
+        let [a, b, c] = self.vertices(triangle);
+        a + (b - a) * barycentric.x + (c - a) * barycentric.y
+    }
+
     /// Geometric normal from the counter-clockwise winding (front face).
     #[inline]
     pub fn geometric_normal(&self, triangle: usize) -> Vec3 {

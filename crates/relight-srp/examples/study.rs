@@ -76,8 +76,7 @@ fn detail(context: &SceneContext, bake: &[u8], values: &[Rgb], reference: &[Rgb]
                     if front.dot(direction) >= 0.0 {
                         continue;
                     }
-                    let [a, b, c] = context.scene.mesh.vertices(triangle);
-                    let point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+                    let point = context.scene.mesh.point_at(triangle, hit.barycentric);
                     let irradiance = direct.irradiance(&lights, point, front, sample)
                         + context
                             .atlas

@@ -70,8 +70,7 @@ fn texel_point(
     let uv = Vec2::new(texel[0] as f32, texel[1] as f32) + jitter;
     let uvs = &context.atlas.triangle_uvs[triangle as usize];
     let (_, barycentric) = relight_scene::atlas::closest_barycentric(uvs, uv);
-    let [a, b, c] = context.scene.mesh.vertices(triangle as usize);
-    let point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
+    let point = context.scene.mesh.point_at(triangle as usize, barycentric);
     let lift = receivers.normals[receiver] * epsilon;
     let along = Ray {
         origin: centre + lift,
@@ -124,8 +123,7 @@ fn probe_kernels(
     if surface_normal.dot(primary.direction) >= 0.0 {
         return SampleKernel::Invalid;
     }
-    let [a, b, c] = context.scene.mesh.vertices(triangle);
-    let hit_point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+    let hit_point = context.scene.mesh.point_at(triangle, hit.barycentric);
     let lifted = hit_point + surface_normal * epsilon;
     let mut denominator = 0.0f32;
     for (slot, &probe) in nearby.iter().enumerate() {

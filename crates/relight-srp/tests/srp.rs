@@ -428,8 +428,7 @@ fn reference_incident_sh(
         if surface_normal.dot(direction) >= 0.0 {
             continue;
         }
-        let [a, b, c] = context.scene.mesh.vertices(triangle);
-        let point = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+        let point = context.scene.mesh.point_at(triangle, hit.barycentric);
         let irradiance = direct.irradiance(&lights, point, surface_normal, sample as u64)
             + context
                 .atlas
@@ -462,14 +461,7 @@ fn radiance_transport_follows_path_traced_incident_radiance() {
     let receivers = &context.atlas.receivers;
     let atlas = &context.atlas;
     let reference_values = reference(&context, 512);
-    let mut reference_lightmap = vec![Rgb::ZERO; (atlas.width * atlas.height) as usize];
-    for (receiver, value) in reference_values.iter().enumerate() {
-        let [x, y] = receivers.texels[receiver];
-        reference_lightmap[(y * atlas.width + x) as usize] = *value;
-    }
-    for &(target, source) in &atlas.dilation {
-        reference_lightmap[target as usize] = reference_lightmap[source as usize];
-    }
+    let reference_lightmap = atlas.to_lightmap(&reference_values);
     let common = [
         ("order", "7"),
         ("probe_count", "64"),

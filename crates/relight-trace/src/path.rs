@@ -125,8 +125,7 @@ impl<'a> PathTracer<'a> {
     fn interact(&self, ray: &Ray) -> Option<Interaction> {
         let hit = self.bvh.intersect(ray)?;
         let triangle = hit.triangle as usize;
-        let [a, b, c] = self.scene.mesh.vertices(triangle);
-        let position = a + (b - a) * hit.barycentric.x + (c - a) * hit.barycentric.y;
+        let position = self.scene.mesh.point_at(triangle, hit.barycentric);
         let front = self.scene.mesh.geometric_normal(triangle);
         let seen_from_front = front.dot(ray.direction) < 0.0;
         let material = self.scene.material_of(triangle);
