@@ -97,16 +97,6 @@ pub fn project_cluster(
 
 /// Irradiance of one receiver: its `rank` f16 weights dot the cluster's
 /// channel-major light basis.
-#[inline]
-pub fn reconstruct(weights: &[u16], basis: &[f32], rank: usize) -> Rgb {
-    #[cfg(target_arch = "x86_64")]
-    if rank.is_multiple_of(8) && wide_kernels_available() {
-        // SAFETY: AVX2, FMA and F16C were detected; rank is a multiple of 8.
-        return unsafe { reconstruct_wide(weights, basis, rank) };
-    }
-    reconstruct_portable(weights, basis, rank)
-}
-
 pub fn reconstruct_portable(weights: &[u16], basis: &[f32], rank: usize) -> Rgb {
     let mut sums = [0.0f32; 3];
     for (k, &bits) in weights[..rank].iter().enumerate() {
@@ -345,7 +335,9 @@ mod tests {
                 .collect();
             let basis: Vec<f32> = (0..3 * rank).map(|_| rng.next_f32() * 4.0).collect();
             let portable = reconstruct_portable(&weights, &basis, rank);
-            let dispatched = reconstruct(&weights, &basis, rank);
+            let mut dispatched = [Rgb::ZERO];
+            reconstruct_many(&weights, &basis, rank, &mut dispatched);
+            let dispatched = dispatched[0];
             for channel in 0..3 {
                 let exact: f64 = (0..rank)
                     .map(|k| f16::from_bits(weights[k]).to_f64() * basis[channel * rank + k] as f64)

@@ -51,8 +51,8 @@ pub struct Srp {
     /// The same for the radiance transport's clusters.
     radiance_light_basis: Vec<f32>,
     /// Incident radiance SH of the glossy receivers, in radiance-cluster
-    /// order: `glossy_radiance[(slot * 3 + channel) * outputs + m]`.
-    glossy_sh: Vec<f32>,
+    /// order: `glossy_sh[slot * outputs + m]`.
+    glossy_sh: Vec<Rgb>,
     /// Per atlas texel (gutters through their source), the glossy slot of
     /// its receiver, or `u32::MAX`; empty without radiance transport.
     glossy_slot_of_texel: Vec<u32>,
@@ -132,8 +132,8 @@ impl Srp {
                     * bake.radiance.clusters.rank
             ],
             glossy_sh: vec![
-                0.0;
-                bake.radiance.clusters.receivers.len() * 3 * bake.radiance.outputs()
+                Rgb::ZERO;
+                bake.radiance.clusters.receivers.len() * bake.radiance.outputs()
             ],
             glossy_slot_of_texel: glossy_slots(&context, &bake),
             sorted_texels,
@@ -319,28 +319,13 @@ impl Srp {
             self.coefficients,
             &mut self.radiance_light_basis,
         );
-        let rank = clusters.rank;
         let outputs = radiance.outputs();
         let light_basis = &self.radiance_light_basis;
-        let offsets = &clusters.receiver_offsets;
-        let output = kernels::DisjointWriter::new(&mut self.glossy_sh);
-        (0..clusters.cluster_count())
-            .into_par_iter()
-            .for_each(|cluster| {
-                let basis = &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank];
-                for slot in offsets[cluster] as usize..offsets[cluster + 1] as usize {
-                    for m in 0..outputs {
-                        let row = (slot * outputs + m) * rank;
-                        let weights = &clusters.reconstruction[row..row + rank];
-                        let value = kernels::reconstruct(weights, basis, rank);
-                        for channel in 0..3 {
-                            // SAFETY: clusters own disjoint slot ranges.
-                            unsafe {
-                                output.write((slot * 3 + channel) * outputs + m, value[channel])
-                            };
-                        }
-                    }
-                }
+        self.glossy_sh
+            .par_chunks_mut(RECEIVER_CHUNK)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                reconstruct_rows(clusters, outputs, light_basis, chunk * RECEIVER_CHUNK, out)
             });
     }
 
@@ -376,15 +361,14 @@ impl Srp {
             if slot == u32::MAX || weight <= 0.0 {
                 continue;
             }
-            let values = &self.glossy_sh[slot as usize * 3 * outputs..][..3 * outputs];
-            for channel in 0..3 {
-                sum[channel] += weight
-                    * values[channel * outputs..(channel + 1) * outputs]
-                        .iter()
-                        .zip(&filtered[..outputs])
-                        .map(|(value, basis)| value * basis)
-                        .sum::<f32>();
-            }
+            let values = &self.glossy_sh[slot as usize * outputs..][..outputs];
+            let radiance = values
+                .iter()
+                .zip(&filtered[..outputs])
+                .fold(Rgb::ZERO, |radiance, (value, basis)| {
+                    radiance + *value * *basis
+                });
+            sum += weight * radiance;
             total += weight;
         }
         (total > 0.0).then(|| (sum / total).max(Rgb::ZERO))
@@ -394,7 +378,6 @@ impl Srp {
     /// written straight into the receiver's lightmap texel.
     fn reconstruct(&mut self) {
         let clusters = &self.bake.clusters;
-        let rank = clusters.rank;
         let light_basis = &self.light_basis;
         let texels = &self.sorted_texels;
         let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
@@ -405,22 +388,8 @@ impl Srp {
                 let mut values = [Rgb::ZERO; RECEIVER_CHUNK];
                 let start = chunk * RECEIVER_CHUNK;
                 let end = (start + RECEIVER_CHUNK).min(total);
-                let mut cluster = clusters
-                    .receiver_offsets
-                    .partition_point(|&offset| offset as usize <= start)
-                    - 1;
-                let mut index = start;
-                while index < end {
-                    let cluster_end = (clusters.receiver_offsets[cluster + 1] as usize).min(end);
-                    kernels::reconstruct_many(
-                        &clusters.reconstruction[index * rank..cluster_end * rank],
-                        &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
-                        rank,
-                        &mut values[index - start..cluster_end - start],
-                    );
-                    index = cluster_end;
-                    cluster += 1;
-                }
+                let values = &mut values[..end - start];
+                reconstruct_rows(clusters, 1, light_basis, start, values);
                 for (value, &texel) in values.iter().zip(&texels[start..end]) {
                     // SAFETY: the clusters' receivers are a permutation (checked
                     // when the bake is decoded) and receivers own distinct
@@ -486,6 +455,40 @@ impl Srp {
             return nearest.map_or(Rgb::ZERO, |(index, _)| radiance_of(index).max(Rgb::ZERO));
         }
         (sum / total).max(Rgb::ZERO)
+    }
+}
+
+/// U_c times each cluster's light basis (`light_basis[(cluster * 3 +
+/// channel) * rank + k]`) for the rows `first..first + out.len()` of
+/// `clusters`, which has `rows_per_receiver` rows per receiver in cluster
+/// order: the irradiance's one, the radiance transport's one per output
+/// coefficient.
+fn reconstruct_rows(
+    clusters: &ClusterSet,
+    rows_per_receiver: usize,
+    light_basis: &[f32],
+    first: usize,
+    out: &mut [Rgb],
+) {
+    let rank = clusters.rank;
+    let first_row_of =
+        |cluster: usize| clusters.receiver_offsets[cluster] as usize * rows_per_receiver;
+    let end = first + out.len();
+    let mut cluster = clusters
+        .receiver_offsets
+        .partition_point(|&offset| offset as usize * rows_per_receiver <= first)
+        - 1;
+    let mut row = first;
+    while row < end {
+        let cluster_end = first_row_of(cluster + 1).min(end);
+        kernels::reconstruct_many(
+            &clusters.reconstruction[row * rank..cluster_end * rank],
+            &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
+            rank,
+            &mut out[row - first..cluster_end - first],
+        );
+        row = cluster_end;
+        cluster += 1;
     }
 }
 
@@ -749,7 +752,8 @@ impl Technique for Srp {
             ),
             MemoryEntry::new(
                 "glossy receivers' radiance SH and texel slots",
-                (self.glossy_sh.len() + self.radiance_light_basis.len()) * 4
+                self.glossy_sh.len() * 12
+                    + self.radiance_light_basis.len() * 4
                     + self.glossy_slot_of_texel.len() * 4,
             ),
         ]
