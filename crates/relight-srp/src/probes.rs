@@ -337,8 +337,9 @@ fn cover_receivers(
 ) -> (usize, usize) {
     let receivers = &context.atlas.receivers;
     let mut added = 0usize;
+    // Counts add up over probe sets: each round counts only its new batch.
+    let mut counts = visible_counts(context, probes, radius);
     for _round in 0..COVERAGE_ROUNDS {
-        let counts = visible_counts(context, probes, radius);
         let short: Vec<usize> = (0..receivers.len())
             .filter(|&index| counts[index] < settings.min_probes)
             .collect();
@@ -371,7 +372,6 @@ fn cover_receivers(
                         let position = receivers.positions[index];
                         let normal = receivers.normals[index];
                         position.distance(candidate) < radius
-                            && (candidate - position).dot(normal) > 0.0
                             && receiver_sees_probe(context, position, normal, candidate, epsilon)
                     })
                     .count()
@@ -402,9 +402,18 @@ fn cover_receivers(
             return (added, short.len());
         }
         added += batch.len();
+        for (count, seen) in counts
+            .iter_mut()
+            .zip(visible_counts(context, &batch, radius))
+        {
+            *count += seen;
+        }
         probes.extend(batch);
     }
-    let short = count_short_receivers(context, probes, radius, settings.min_probes);
+    let short = counts
+        .iter()
+        .filter(|&&count| count < settings.min_probes)
+        .count();
     (added, short)
 }
 
