@@ -35,7 +35,8 @@ pub struct Srp {
     bake: SrpBake,
     settings: RuntimeSettings,
     coefficients: usize,
-    /// Y_j(direction_s) * 4 pi / S for every shared sample direction.
+    /// Y_j(direction_s) * 4 pi / S for every shared sample direction,
+    /// coefficient-major: `basis_table[j * stride + s]`.
     basis_table: Vec<f32>,
     /// Positions, normals and albedos of the probe-visible receivers.
     visible_positions: Vec<Vec3>,
@@ -59,9 +60,15 @@ pub struct Srp {
     /// Atlas texel of each receiver in cluster order, so reconstruction
     /// writes the lightmap directly.
     sorted_texels: Vec<u32>,
-    /// Atlas texel of each probe-visible receiver, where feedback reads
-    /// last frame's indirect light.
-    visible_texels: Vec<u32>,
+    /// (position in cluster order, probe-visible index) of every
+    /// probe-visible receiver, by position, and the first pair of each
+    /// reconstruction chunk: reconstruction copies these receivers'
+    /// irradiance into `visible_indirect` for multi-bounce feedback, which
+    /// then reads it in order instead of at scattered lightmap texels.
+    visible_in_cluster_order: Vec<[u32; 2]>,
+    visible_chunk_starts: Vec<u32>,
+    /// Last reconstruction's irradiance at the probe-visible receivers.
+    visible_indirect: Vec<Rgb>,
     /// Receiver-order copy of the lightmap, gathered only when asked for.
     receiver_values: OnceLock<Vec<Rgb>>,
     lightmap: Vec<Rgb>,
@@ -84,15 +91,13 @@ impl Srp {
         let coefficients = bake.coefficients();
         let samples = bake.sample_directions.len();
         let weight = 4.0 * PI / samples.max(1) as f32;
-        let mut basis_table = vec![0.0f32; samples * coefficients];
-        for (direction, row) in bake
-            .sample_directions
-            .iter()
-            .zip(basis_table.chunks_exact_mut(coefficients))
-        {
-            sh::evaluate(*direction, bake.bands, row);
-            for value in row.iter_mut() {
-                *value *= weight;
+        let stride = kernels::basis_stride(samples);
+        let mut basis_table = vec![0.0f32; coefficients * stride];
+        let mut values = vec![0.0f32; coefficients];
+        for (sample, direction) in bake.sample_directions.iter().enumerate() {
+            sh::evaluate(*direction, bake.bands, &mut values);
+            for (j, value) in values.iter().enumerate() {
+                basis_table[j * stride + sample] = value * weight;
             }
         }
         let receivers = &context.atlas.receivers;
@@ -114,7 +119,28 @@ impl Srp {
             .iter()
             .map(|&r| texel_of(r))
             .collect();
-        let visible_texels = visible.iter().map(|&r| texel_of(r)).collect();
+        let mut visible_index_of = vec![u32::MAX; receivers.len()];
+        for (index, &receiver) in visible.iter().enumerate() {
+            visible_index_of[receiver as usize] = index as u32;
+        }
+        let visible_in_cluster_order: Vec<[u32; 2]> = bake
+            .clusters
+            .receivers
+            .iter()
+            .enumerate()
+            .filter_map(|(position, &receiver)| {
+                let index = *visible_index_of.get(receiver as usize)?;
+                (index != u32::MAX).then_some([position as u32, index])
+            })
+            .collect();
+        let chunk_count = bake.clusters.receivers.len().div_ceil(RECEIVER_CHUNK);
+        let visible_chunk_starts = (0..=chunk_count)
+            .map(|chunk| {
+                visible_in_cluster_order
+                    .partition_point(|&[position, _]| (position as usize) < chunk * RECEIVER_CHUNK)
+                    as u32
+            })
+            .collect();
         Self {
             basis_table,
             visible_direct: vec![Rgb::ZERO; visible.len()],
@@ -137,7 +163,9 @@ impl Srp {
             ],
             glossy_slot_of_texel: glossy_slots(&context, &bake),
             sorted_texels,
-            visible_texels,
+            visible_in_cluster_order,
+            visible_chunk_starts,
+            visible_indirect: vec![Rgb::ZERO; visible.len()],
             receiver_values: OnceLock::new(),
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             timings: StageTimings::default(),
@@ -242,13 +270,13 @@ impl Srp {
         let feedback = self.settings.bounces > 1;
         let output = kernels::DisjointWriter::new(&mut self.visible_radiance);
         let (direct, albedos) = (&self.visible_direct, &self.visible_albedos);
-        let (lightmap, lightmap_texels) = (&self.lightmap, &self.visible_texels);
+        let indirect = &self.visible_indirect;
         self.needed.par_chunks(4096).for_each(|needed| {
             for &visible in needed {
                 let visible = visible as usize;
                 let mut irradiance = direct[visible];
                 if feedback {
-                    irradiance += lightmap[lightmap_texels[visible] as usize];
+                    irradiance += indirect[visible];
                 }
                 // SAFETY: `needed` lists each texel once.
                 unsafe { output.write(visible, albedos[visible] * irradiance * FRAC_1_PI) };
@@ -266,12 +294,13 @@ impl Srp {
         let basis = &self.basis_table;
         let refreshing = &self.refreshing;
         let all = refreshing.len() == self.bake.probes.len();
-        let project = |probe: usize, out: &mut [f32]| {
+        let project = |probe: usize, gathered: &mut Vec<f32>, out: &mut [f32]| {
             kernels::project_probe(
                 &targets[probe * samples..(probe + 1) * samples],
                 radiance,
                 basis,
                 coefficients,
+                gathered,
                 out,
             );
         };
@@ -279,20 +308,24 @@ impl Srp {
             self.probe_radiance
                 .par_chunks_mut(3 * coefficients)
                 .enumerate()
-                .for_each(|(probe, out)| project(probe, out));
+                .for_each_init(Vec::new, |gathered, (probe, out)| {
+                    project(probe, gathered, out)
+                });
         } else {
             let output = kernels::DisjointWriter::new(&mut self.probe_radiance);
-            refreshing.par_iter().for_each(|&probe| {
-                let mut values = [0.0f32; 3 * sh::MAX_BANDS * sh::MAX_BANDS];
-                let values = &mut values[..3 * coefficients];
-                project(probe as usize, values);
-                let start = probe as usize * 3 * coefficients;
-                for (offset, value) in values.iter().enumerate() {
-                    // SAFETY: each refreshed probe appears once in the list
-                    // and owns its own 3 x C values.
-                    unsafe { output.write(start + offset, *value) };
-                }
-            });
+            refreshing
+                .par_iter()
+                .for_each_init(Vec::new, |gathered, &probe| {
+                    let mut values = [0.0f32; 3 * sh::MAX_BANDS * sh::MAX_BANDS];
+                    let values = &mut values[..3 * coefficients];
+                    project(probe as usize, gathered, values);
+                    let start = probe as usize * 3 * coefficients;
+                    for (offset, value) in values.iter().enumerate() {
+                        // SAFETY: each refreshed probe appears once in the list
+                        // and owns its own 3 x C values.
+                        unsafe { output.write(start + offset, *value) };
+                    }
+                });
         }
     }
 
@@ -381,6 +414,9 @@ impl Srp {
         let light_basis = &self.light_basis;
         let texels = &self.sorted_texels;
         let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
+        let visible_indirect = kernels::DisjointWriter::new(&mut self.visible_indirect);
+        let (visible_pairs, visible_starts) =
+            (&self.visible_in_cluster_order, &self.visible_chunk_starts);
         let total = clusters.receivers.len();
         (0..total.div_ceil(RECEIVER_CHUNK))
             .into_par_iter()
@@ -395,6 +431,13 @@ impl Srp {
                     // when the bake is decoded) and receivers own distinct
                     // texels, so every texel is written by one sorted index.
                     unsafe { lightmap.write(texel as usize, value.max(Rgb::ZERO)) };
+                }
+                let pairs = visible_starts[chunk] as usize..visible_starts[chunk + 1] as usize;
+                for &[position, index] in &visible_pairs[pairs] {
+                    let value = values[position as usize - start].max(Rgb::ZERO);
+                    // SAFETY: each probe-visible receiver has one position in
+                    // cluster order, so one pair writes each index.
+                    unsafe { visible_indirect.write(index as usize, value) };
                 }
             });
     }
@@ -742,8 +785,11 @@ impl Technique for Srp {
             MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
             MemoryEntry::new(
-                "receiver texels (cluster order, probe-visible)",
-                (self.sorted_texels.len() + self.visible_texels.len()) * 4,
+                "receiver texels and probe-visible feedback (cluster order)",
+                self.sorted_texels.len() * 4
+                    + self.visible_in_cluster_order.len() * 8
+                    + self.visible_chunk_starts.len() * 4
+                    + self.visible_indirect.len() * 12,
             ),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
             MemoryEntry::new(
