@@ -365,6 +365,17 @@ impl<T> DisjointWriter<T> {
         assert!(index < self.length);
         self.pointer.add(index).write(value);
     }
+
+    /// # Safety
+    /// No task may write `index` while the writer lives.
+    #[inline]
+    pub unsafe fn read(&self, index: usize) -> T
+    where
+        T: Copy,
+    {
+        assert!(index < self.length);
+        self.pointer.add(index).read()
+    }
 }
 
 #[cfg(test)]

@@ -28,10 +28,8 @@
 //! frame's indirect irradiance, times albedo / pi, for further bounces);
 //! probe projection into SH through the sample tables; per cluster the
 //! light basis vector Sigma_c V^T lambda; per receiver U_c times it,
-//! written in cluster order. The lightmap is that array seen through a
-//! per-texel index made at load time, in which gutter texels point at the
-//! receiver they copy: dilation is done once, not every frame, and shading
-//! samples the lightmap bilinearly through the index.
+//! written straight into its lightmap texel; then the gutters are dilated,
+//! and the lightmap is sampled bilinearly when shading.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|

@@ -1,6 +1,6 @@
 //! The SRP run time: direct light where probes look, probe projection into
 //! SH, per-cluster projection onto the principal vectors, reconstruction
-//! per receiver with the lightmap gutters (dilation) written alongside.
+//! per receiver, dilation.
 
 use crate::bake::{ClusterSet, SrpBake, BACK_FACE};
 use crate::kernels;
@@ -57,24 +57,21 @@ pub struct Srp {
     /// Per atlas texel (gutters through their source), the glossy slot of
     /// its receiver, or `u32::MAX`; empty without radiance transport.
     glossy_slot_of_texel: Vec<u32>,
-    /// Per atlas texel, the position in cluster order of its receiver,
-    /// gutter texels through the covered texel they copy, or `u32::MAX`:
-    /// the lightmap is `irradiance` seen through this index, so its
-    /// dilation is done once here and costs nothing per frame.
-    position_of_texel: Vec<u32>,
+    /// Atlas texel of each receiver in cluster order, so reconstruction
+    /// writes the lightmap directly.
+    sorted_texels: Vec<u32>,
     /// (position in cluster order, probe-visible index) of every
-    /// probe-visible receiver: reconstruction copies these receivers'
+    /// probe-visible receiver, by position, and the first pair of each
+    /// reconstruction chunk: reconstruction copies these receivers'
     /// irradiance into `visible_indirect` for multi-bounce feedback, which
     /// then reads it in order instead of at scattered lightmap texels.
-    visible_in_cluster_order: ChunkedPairs,
+    visible_in_cluster_order: Vec<[u32; 2]>,
+    visible_chunk_starts: Vec<u32>,
     /// Last reconstruction's irradiance at the probe-visible receivers.
     visible_indirect: Vec<Rgb>,
-    /// Receiver-order copy of `irradiance`, gathered only when asked for.
+    /// Receiver-order copy of the lightmap, gathered only when asked for.
     receiver_values: OnceLock<Vec<Rgb>>,
-    /// Irradiance per receiver in cluster order, written in order by
-    /// reconstruction: a third of the bytes of a full lightmap (most
-    /// texels are empty or gutters), and no scattered writes.
-    irradiance: Vec<Rgb>,
+    lightmap: Vec<Rgb>,
     timings: StageTimings,
     /// Round-robin position of staggered updates.
     next_probe: usize,
@@ -112,19 +109,38 @@ impl Srp {
         let visible_normals = pick(&receivers.normals);
         let visible_albedos = pick(&receivers.albedos);
         let probe_count = bake.probes.len();
-        let mut position_of_receiver = vec![u32::MAX; receivers.len()];
-        for (position, &receiver) in bake.clusters.receivers.iter().enumerate() {
-            position_of_receiver[receiver as usize] = position as u32;
+        let texel_of = |receiver: u32| -> u32 {
+            let [x, y] = receivers.texels[receiver as usize];
+            y * context.atlas.width + x
+        };
+        let sorted_texels = bake
+            .clusters
+            .receivers
+            .iter()
+            .map(|&r| texel_of(r))
+            .collect();
+        let mut visible_index_of = vec![u32::MAX; receivers.len()];
+        for (index, &receiver) in visible.iter().enumerate() {
+            visible_index_of[receiver as usize] = index as u32;
         }
-        let sorted_count = bake.clusters.receivers.len();
-        let visible_in_cluster_order = ChunkedPairs::new(
-            visible
-                .iter()
-                .enumerate()
-                .map(|(index, &receiver)| [position_of_receiver[receiver as usize], index as u32])
-                .collect(),
-            sorted_count,
-        );
+        let visible_in_cluster_order: Vec<[u32; 2]> = bake
+            .clusters
+            .receivers
+            .iter()
+            .enumerate()
+            .filter_map(|(position, &receiver)| {
+                let index = *visible_index_of.get(receiver as usize)?;
+                (index != u32::MAX).then_some([position as u32, index])
+            })
+            .collect();
+        let chunk_count = bake.clusters.receivers.len().div_ceil(RECEIVER_CHUNK);
+        let visible_chunk_starts = (0..=chunk_count)
+            .map(|chunk| {
+                visible_in_cluster_order
+                    .partition_point(|&[position, _]| (position as usize) < chunk * RECEIVER_CHUNK)
+                    as u32
+            })
+            .collect();
         Self {
             basis_table,
             visible_direct: vec![Rgb::ZERO; visible.len()],
@@ -145,20 +161,13 @@ impl Srp {
                 Rgb::ZERO;
                 bake.radiance.clusters.receivers.len() * bake.radiance.outputs()
             ],
-            glossy_slot_of_texel: slots_of_texels(
-                &context,
-                &bake.radiance.clusters.receivers,
-                bake.receiver_count,
-            ),
-            position_of_texel: slots_of_texels(
-                &context,
-                &bake.clusters.receivers,
-                bake.receiver_count,
-            ),
+            glossy_slot_of_texel: glossy_slots(&context, &bake),
+            sorted_texels,
             visible_in_cluster_order,
+            visible_chunk_starts,
             visible_indirect: vec![Rgb::ZERO; visible.len()],
             receiver_values: OnceLock::new(),
-            irradiance: vec![Rgb::ZERO; sorted_count],
+            lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             timings: StageTimings::default(),
             next_probe: 0,
             refreshing: Vec::with_capacity(probe_count),
@@ -398,29 +407,37 @@ impl Srp {
         (total > 0.0).then(|| (sum / total).max(Rgb::ZERO))
     }
 
-    /// Irradiance per receiver: U_c times the cluster's light basis, in
-    /// cluster order, with the probe-visible receivers' copied out for
-    /// feedback.
+    /// Irradiance per receiver: U_c times the cluster's light basis,
+    /// written straight into the receiver's lightmap texel.
     fn reconstruct(&mut self) {
         let clusters = &self.bake.clusters;
         let light_basis = &self.light_basis;
+        let texels = &self.sorted_texels;
+        let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
         let visible_indirect = kernels::DisjointWriter::new(&mut self.visible_indirect);
-        let visible_pairs = &self.visible_in_cluster_order;
-        self.irradiance
-            .par_chunks_mut(RECEIVER_CHUNK)
-            .enumerate()
-            .for_each(|(chunk, values)| {
+        let (visible_pairs, visible_starts) =
+            (&self.visible_in_cluster_order, &self.visible_chunk_starts);
+        let total = clusters.receivers.len();
+        (0..total.div_ceil(RECEIVER_CHUNK))
+            .into_par_iter()
+            .for_each(|chunk| {
+                let mut values = [Rgb::ZERO; RECEIVER_CHUNK];
                 let start = chunk * RECEIVER_CHUNK;
+                let end = (start + RECEIVER_CHUNK).min(total);
+                let values = &mut values[..end - start];
                 reconstruct_rows(clusters, 1, light_basis, start, values);
-                for value in values.iter_mut() {
-                    *value = value.max(Rgb::ZERO);
+                for (value, &texel) in values.iter().zip(&texels[start..end]) {
+                    // SAFETY: the clusters' receivers are a permutation (checked
+                    // when the bake is decoded) and receivers own distinct
+                    // texels, so every texel is written by one sorted index.
+                    unsafe { lightmap.write(texel as usize, value.max(Rgb::ZERO)) };
                 }
-                for &[position, index] in visible_pairs.in_chunk(chunk) {
+                let pairs = visible_starts[chunk] as usize..visible_starts[chunk + 1] as usize;
+                for &[position, index] in &visible_pairs[pairs] {
+                    let value = values[position as usize - start].max(Rgb::ZERO);
                     // SAFETY: each probe-visible receiver has one position in
                     // cluster order, so one pair writes each index.
-                    unsafe {
-                        visible_indirect.write(index as usize, values[position as usize - start])
-                    };
+                    unsafe { visible_indirect.write(index as usize, value) };
                 }
             });
     }
@@ -481,38 +498,6 @@ impl Srp {
             return nearest.map_or(Rgb::ZERO, |(index, _)| radiance_of(index).max(Rgb::ZERO));
         }
         (sum / total).max(Rgb::ZERO)
-    }
-}
-
-/// (position in cluster order, payload) pairs sorted by position, with
-/// the first pair of each `RECEIVER_CHUNK` of positions, so that a
-/// reconstruction job finds the pairs of its receivers without a search.
-struct ChunkedPairs {
-    pairs: Vec<[u32; 2]>,
-    chunk_starts: Vec<u32>,
-}
-
-impl ChunkedPairs {
-    fn new(mut pairs: Vec<[u32; 2]>, positions: usize) -> Self {
-        pairs.sort_unstable();
-        let chunk_starts = (0..=positions.div_ceil(RECEIVER_CHUNK))
-            .map(|chunk| {
-                pairs.partition_point(|&[position, _]| (position as usize) < chunk * RECEIVER_CHUNK)
-                    as u32
-            })
-            .collect();
-        Self {
-            pairs,
-            chunk_starts,
-        }
-    }
-
-    fn in_chunk(&self, chunk: usize) -> &[[u32; 2]] {
-        &self.pairs[self.chunk_starts[chunk] as usize..self.chunk_starts[chunk + 1] as usize]
-    }
-
-    fn bytes(&self) -> usize {
-        self.pairs.len() * 8 + self.chunk_starts.len() * 4
     }
 }
 
@@ -586,15 +571,15 @@ fn project_cluster_set(
         });
 }
 
-/// Per atlas texel, the slot of its receiver in `receivers` (a list of
-/// receiver indices; gutter texels through the texel they copy), or
-/// `u32::MAX`; empty when `receivers` is.
-fn slots_of_texels(context: &SceneContext, receivers: &[u32], receiver_count: usize) -> Vec<u32> {
-    if receivers.is_empty() {
+/// Per atlas texel, the slot of its receiver in the radiance transport
+/// (gutter texels through the texel they copy), or `u32::MAX`.
+fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
+    let radiance = &bake.radiance;
+    if radiance.bands == 0 {
         return Vec::new();
     }
-    let mut slot_of_receiver = vec![u32::MAX; receiver_count];
-    for (slot, &receiver) in receivers.iter().enumerate() {
+    let mut slot_of_receiver = vec![u32::MAX; bake.receiver_count];
+    for (slot, &receiver) in radiance.clusters.receivers.iter().enumerate() {
         slot_of_receiver[receiver as usize] = slot as u32;
     }
     context
@@ -651,23 +636,28 @@ impl Technique for Srp {
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }
+        // Reconstruction wrote the receivers' texels; the gutters copy them.
+        timings.time("dilation", || {
+            let atlas = &self.context.atlas;
+            let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
+            atlas.dilation.par_chunks(8192).for_each(|pairs| {
+                for &(target, source) in pairs {
+                    // SAFETY: gutter targets are distinct and never sources
+                    // (sources are covered texels), so no element is both
+                    // read and written, nor written twice.
+                    unsafe { lightmap.write(target as usize, lightmap.read(source as usize)) };
+                }
+            });
+        });
         self.timings = timings;
         self.updates += 1;
         Ok(())
     }
 
-    /// The lightmap's bilinear lookup, through the texel index.
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
         self.context
             .atlas
-            .bilinear_texels(point.triangle, point.barycentric)
-            .into_iter()
-            .fold(Rgb::ZERO, |sum, (texel, weight)| {
-                match self.position_of_texel[texel] {
-                    u32::MAX => sum,
-                    position => sum + self.irradiance[position as usize] * weight,
-                }
-            })
+            .sample(&self.lightmap, point.triangle, point.barycentric)
     }
 
     /// Distance-weighted probes, each probe's radiance convolved with the
@@ -709,10 +699,7 @@ impl Technique for Srp {
                 .receivers
                 .texels
                 .par_iter()
-                .map(|&[x, y]| {
-                    let position = self.position_of_texel[y as usize * width + x as usize];
-                    self.irradiance[position as usize]
-                })
+                .map(|&[x, y]| self.lightmap[y as usize * width + x as usize])
                 .collect()
         }))
     }
@@ -798,14 +785,13 @@ impl Technique for Srp {
             MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
             MemoryEntry::new(
-                "probe-visible feedback (cluster order)",
-                self.visible_in_cluster_order.bytes() + self.visible_indirect.len() * 12,
+                "receiver texels and probe-visible feedback (cluster order)",
+                self.sorted_texels.len() * 4
+                    + self.visible_in_cluster_order.len() * 8
+                    + self.visible_chunk_starts.len() * 4
+                    + self.visible_indirect.len() * 12,
             ),
-            MemoryEntry::new("irradiance per receiver", self.irradiance.len() * 12),
-            MemoryEntry::new(
-                "lightmap texel index (dilated)",
-                self.position_of_texel.len() * 4,
-            ),
+            MemoryEntry::new("lightmap", self.lightmap.len() * 12),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
                 bake.radiance.clusters.matrix_bytes() + bake.radiance.clusters.list_bytes(),
