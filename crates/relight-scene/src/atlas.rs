@@ -346,7 +346,6 @@ impl Atlas {
         receivers
     }
 
-    /// Bilinear lookup of a dilated lightmap at a point on a triangle.
     /// The four texels around a surface point for a bilinear lookup (texel
     /// centres at half-integer UVs, clamped at the atlas edge), as (texel
     /// index, weight) in the order (x0, y0), (x1, y0), (x0, y1), (x1, y1).
@@ -368,6 +367,7 @@ impl Atlas {
         })
     }
 
+    /// Bilinear lookup of a dilated lightmap at a point on a triangle.
     pub fn sample(&self, lightmap: &[Rgb], triangle: u32, barycentric: Vec2) -> Rgb {
         let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
         let x0 = uv.x.floor();
