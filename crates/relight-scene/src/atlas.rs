@@ -352,7 +352,7 @@ impl Atlas {
     /// For lookups that skip texels with nothing in them and renormalise.
     pub fn bilinear_texels(&self, triangle: u32, barycentric: Vec2) -> [(usize, f32); 4] {
         let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
-        let (x0, y0) = (uv.x.floor(), uv.y.floor());
+        let (x0, y0) = (floor_small(uv.x), floor_small(uv.y));
         let (fx, fy) = (uv.x - x0, uv.y - y0);
         [
             (0, 0, (1.0 - fx) * (1.0 - fy)),
@@ -368,22 +368,22 @@ impl Atlas {
     }
 
     /// Bilinear lookup of a dilated lightmap at a point on a triangle.
+    /// Renderers call this per pixel: inlined, with the four fetches as
+    /// straight-line code.
+    #[inline]
     pub fn sample(&self, lightmap: &[Rgb], triangle: u32, barycentric: Vec2) -> Rgb {
         let uv = self.uv_of(triangle, barycentric) - Vec2::splat(0.5);
-        let x0 = uv.x.floor();
-        let y0 = uv.y.floor();
-        let fx = uv.x - x0;
-        let fy = uv.y - y0;
-        let max_x = self.width as i64 - 1;
-        let max_y = self.height as i64 - 1;
-        let texel = |x: i64, y: i64| {
-            let x = x.clamp(0, max_x) as usize;
-            let y = y.clamp(0, max_y) as usize;
-            lightmap[y * self.width as usize + x]
-        };
+        let (x0, y0) = (floor_small(uv.x), floor_small(uv.y));
+        let (fx, fy) = (uv.x - x0, uv.y - y0);
+        let (max_x, max_y) = (self.width as i64 - 1, self.height as i64 - 1);
         let (x0, y0) = (x0 as i64, y0 as i64);
-        let top = texel(x0, y0).lerp(texel(x0 + 1, y0), fx);
-        let bottom = texel(x0, y0 + 1).lerp(texel(x0 + 1, y0 + 1), fx);
+        let column = |x: i64| x.clamp(0, max_x) as usize;
+        let row = |y: i64| y.clamp(0, max_y) as usize * self.width as usize;
+        let (left, right) = (column(x0), column(x0 + 1));
+        let (upper, lower) = (row(y0), row(y0 + 1));
+        let fetch = |index: usize| lightmap[index];
+        let top = fetch(upper + left).lerp(fetch(upper + right), fx);
+        let bottom = fetch(lower + left).lerp(fetch(lower + right), fx);
         top.lerp(bottom, fy)
     }
 
@@ -392,6 +392,19 @@ impl Atlas {
             + self.receiver_of_texel.len() * 4
             + self.receivers.len() * (8 + 12 + 12 + 4 + 8 + 12)
             + self.dilation.len() * 8
+    }
+}
+
+/// `value.floor()` for texel coordinates (finite, well inside the i32
+/// range), without the libm call that `f32::floor` compiles to on x86-64
+/// without SSE4.1; per-pixel bilinear lookups use it. NaN gives 0.
+#[inline]
+pub(crate) fn floor_small(value: f32) -> f32 {
+    let truncated = value as i32 as f32;
+    if truncated > value {
+        truncated - 1.0
+    } else {
+        truncated
     }
 }
 
@@ -1087,6 +1100,18 @@ mod tests {
         ];
         let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(32)).unwrap();
         assert!(!atlas.from_mesh_uvs);
+    }
+
+    #[test]
+    fn floor_small_is_floor_on_texel_coordinates() {
+        let mut values = vec![0.0f32, -0.0, -0.5, 0.5, -1.0, 1.0, 4095.0, -4096.5];
+        for step in -40_000..40_000 {
+            let value = step as f32 * 0.137;
+            values.extend([value, value.next_up(), value.next_down()]);
+        }
+        for value in values {
+            assert_eq!(floor_small(value), value.floor(), "{value}");
+        }
     }
 
     #[test]

@@ -136,8 +136,8 @@ impl Texture {
     pub fn sample(&self, uv: Vec2) -> Rgb {
         let x = uv.x.rem_euclid(1.0) * self.width as f32 - 0.5;
         let y = uv.y.rem_euclid(1.0) * self.height as f32 - 0.5;
-        let x0 = x.floor();
-        let y0 = y.floor();
+        let x0 = crate::atlas::floor_small(x);
+        let y0 = crate::atlas::floor_small(y);
         let fx = x - x0;
         let fy = y - y0;
         let texel = |ix: i64, iy: i64| {
