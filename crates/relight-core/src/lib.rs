@@ -13,6 +13,6 @@ pub mod pca;
 pub mod sampling;
 pub mod sh;
 
-pub use colour::{luminance, Rgb};
+pub use colour::{luminance, Rgb, Rgb9e5};
 pub use glam::{Mat3, Mat4, UVec2, Vec2, Vec3, Vec3A, Vec4};
 pub use sampling::{Pcg32, SampleStream};

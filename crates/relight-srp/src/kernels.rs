@@ -1,10 +1,13 @@
 //! The per-frame inner loops, kept small and branch-free so they vectorise:
 //! probe projection (samples x SH basis), cluster projection (f16 rows dot
-//! channel-major radiance) and reconstruction (f16 weights dot light basis).
+//! channel-major radiance) and reconstruction (blocks of eight receivers'
+//! f16 weights times the light basis).
 
 use crate::bake::BACK_FACE;
 use half::f16;
-use relight_core::Rgb;
+#[cfg(target_arch = "x86_64")]
+use relight_core::colour::pack_rgb9e5_x8;
+use relight_core::{Rgb, Rgb9e5};
 
 /// Samples per row of the probe-projection basis table: the sample count
 /// rounded up to whole 8-lane vectors (the padding samples have zero basis).
@@ -152,106 +155,120 @@ pub fn project_cluster(
     }
 }
 
-/// Irradiance of one receiver: its `rank` f16 weights dot the cluster's
-/// channel-major light basis.
-pub fn reconstruct_portable(weights: &[u16], basis: &[f32], rank: usize) -> Rgb {
-    let mut sums = [0.0f32; 3];
-    for (k, &bits) in weights[..rank].iter().enumerate() {
-        let weight = f16::from_bits(bits).to_f32();
-        sums[0] += weight * basis[k];
-        sums[1] += weight * basis[rank + k];
-        sums[2] += weight * basis[2 * rank + k];
-    }
-    Rgb::new(sums[0], sums[1], sums[2])
-}
+/// Rows per reconstruction block. A block holds eight rows of one cluster
+/// k-major (`weights[(block * rank + k) * BLOCK_ROWS + lane]`), so one
+/// 8-wide multiply-add advances eight rows at once and no horizontal sums
+/// are needed; rows past a cluster's end are zero.
+pub const BLOCK_ROWS: usize = 8;
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn reconstruct_wide(weights: &[u16], basis: &[f32], rank: usize) -> Rgb {
-    use std::arch::x86_64::*;
-    debug_assert!(weights.len() >= rank && basis.len() >= 3 * rank && rank.is_multiple_of(8));
-    let mut red = _mm256_setzero_ps();
-    let mut green = _mm256_setzero_ps();
-    let mut blue = _mm256_setzero_ps();
-    let light = basis.as_ptr();
-    let mut k = 0;
-    while k < rank {
-        let values = _mm256_cvtph_ps(_mm_loadu_si128(weights.as_ptr().add(k) as *const __m128i));
-        red = _mm256_fmadd_ps(values, _mm256_loadu_ps(light.add(k)), red);
-        green = _mm256_fmadd_ps(values, _mm256_loadu_ps(light.add(rank + k)), green);
-        blue = _mm256_fmadd_ps(values, _mm256_loadu_ps(light.add(2 * rank + k)), blue);
-        k += 8;
-    }
-    Rgb::new(sum8(red), sum8(green), sum8(blue))
-}
-
-/// Irradiance of consecutive receivers sharing one light basis: receiver
-/// `i`'s `rank` weights are `weights[i * rank..]`, its value goes to
-/// `out[i]`.
-pub fn reconstruct_many(weights: &[u16], basis: &[f32], rank: usize, out: &mut [Rgb]) {
-    assert!(weights.len() >= out.len() * rank && basis.len() >= 3 * rank);
+/// Irradiance of `out.len()` consecutive rows of one cluster, stored in
+/// blocks of [`BLOCK_ROWS`] from the first block of `weights` on: row `i`'s
+/// `rank` f16 weights dot the cluster's channel-major light basis
+/// (`basis[channel * rank + k]`). Unless `packed` is empty, it also gets
+/// every value as [`Rgb9e5`] (what a lightmap stores), packed eight at a
+/// time while the block is still in registers.
+pub fn reconstruct_blocks(
+    weights: &[u16],
+    basis: &[f32],
+    rank: usize,
+    out: &mut [Rgb],
+    packed: &mut [Rgb9e5],
+) {
+    let blocks = out.len().div_ceil(BLOCK_ROWS);
+    assert!(weights.len() >= blocks * rank * BLOCK_ROWS && basis.len() >= 3 * rank);
+    assert!(packed.is_empty() || packed.len() == out.len());
     #[cfg(target_arch = "x86_64")]
-    if rank.is_multiple_of(8) && wide_kernels_available() {
+    if wide_kernels_available() {
         // SAFETY: AVX2, FMA and F16C were detected; the lengths are checked
-        // above and rank is a multiple of 8.
-        return unsafe { reconstruct_many_wide(weights, basis, rank, out) };
+        // above.
+        return unsafe { reconstruct_blocks_wide(weights, basis, rank, out, packed) };
     }
-    for (index, value) in out.iter_mut().enumerate() {
-        *value = reconstruct_portable(&weights[index * rank..], basis, rank);
+    reconstruct_blocks_portable(weights, basis, rank, out);
+    for (packed, value) in packed.iter_mut().zip(out.iter()) {
+        *packed = Rgb9e5::from_rgb(*value);
     }
 }
 
-/// Four receivers at a time: twelve independent accumulator chains hide the
-/// multiply-add latency that one receiver's three chains expose, and the
-/// twelve horizontal sums share one transposing reduction whose three
-/// vectors are the four receivers' RGB in memory order.
+pub fn reconstruct_blocks_portable(weights: &[u16], basis: &[f32], rank: usize, out: &mut [Rgb]) {
+    for (block, rows) in out.chunks_mut(BLOCK_ROWS).enumerate() {
+        let block_weights = &weights[block * rank * BLOCK_ROWS..(block + 1) * rank * BLOCK_ROWS];
+        for (lane, value) in rows.iter_mut().enumerate() {
+            let mut sums = [0.0f32; 3];
+            for k in 0..rank {
+                let weight = f16::from_bits(block_weights[k * BLOCK_ROWS + lane]).to_f32();
+                for (channel, sum) in sums.iter_mut().enumerate() {
+                    *sum += weight * basis[channel * rank + k];
+                }
+            }
+            *value = Rgb::new(sums[0], sums[1], sums[2]);
+        }
+    }
+}
+
+/// Four partial sums per channel (twelve accumulators, k split four ways)
+/// hide the multiply-add latency; the basis values are broadcast from
+/// memory, so the accumulators and one converted weight vector are all the
+/// registers the loop holds. A receiver is twelve multiply-adds and four
+/// f16 conversions, with no shuffles: the compiler's version of the
+/// four-receivers-by-three-channels kernel this replaces spilled an
+/// accumulator through the stack every iteration.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn reconstruct_many_wide(weights: &[u16], basis: &[f32], rank: usize, out: &mut [Rgb]) {
+unsafe fn reconstruct_blocks_wide(
+    weights: &[u16],
+    basis: &[f32],
+    rank: usize,
+    out: &mut [Rgb],
+    packed: &mut [Rgb9e5],
+) {
     use std::arch::x86_64::*;
     let light = basis.as_ptr();
-    let whole = out.len() / 4 * 4;
-    let mut receiver = 0;
-    while receiver < whole {
-        let row = weights.as_ptr().add(receiver * rank);
-        let mut sums = [_mm256_setzero_ps(); 12];
+    let whole_k = rank / 4 * 4;
+    for (block, rows) in out.chunks_mut(BLOCK_ROWS).enumerate() {
+        let source = weights.as_ptr().add(block * rank * BLOCK_ROWS);
+        let load = |k: usize| {
+            _mm256_cvtph_ps(_mm_loadu_si128(source.add(k * BLOCK_ROWS) as *const __m128i))
+        };
+        let mut sums = [[_mm256_setzero_ps(); 3]; 4];
         let mut k = 0;
-        while k < rank {
-            let red = _mm256_loadu_ps(light.add(k));
-            let green = _mm256_loadu_ps(light.add(rank + k));
-            let blue = _mm256_loadu_ps(light.add(2 * rank + k));
-            for lane in 0..4 {
-                let values =
-                    _mm256_cvtph_ps(_mm_loadu_si128(row.add(lane * rank + k) as *const __m128i));
-                sums[3 * lane] = _mm256_fmadd_ps(values, red, sums[3 * lane]);
-                sums[3 * lane + 1] = _mm256_fmadd_ps(values, green, sums[3 * lane + 1]);
-                sums[3 * lane + 2] = _mm256_fmadd_ps(values, blue, sums[3 * lane + 2]);
+        while k < whole_k {
+            for (part, partial) in sums.iter_mut().enumerate() {
+                let values = load(k + part);
+                for (channel, sum) in partial.iter_mut().enumerate() {
+                    let factor = _mm256_broadcast_ss(&*light.add(channel * rank + k + part));
+                    *sum = _mm256_fmadd_ps(values, factor, *sum);
+                }
             }
-            k += 8;
+            k += 4;
         }
-        // Pairwise sums leave [s0 s1 s2 s3] of four accumulators in each
-        // 128-bit half; adding the halves finishes them.
-        let pairs = [
-            _mm256_hadd_ps(sums[0], sums[1]),
-            _mm256_hadd_ps(sums[2], sums[3]),
-            _mm256_hadd_ps(sums[4], sums[5]),
-            _mm256_hadd_ps(sums[6], sums[7]),
-            _mm256_hadd_ps(sums[8], sums[9]),
-            _mm256_hadd_ps(sums[10], sums[11]),
-        ];
-        let target = out.as_mut_ptr().add(receiver) as *mut f32;
-        for quad in 0..3 {
-            let partial = _mm256_hadd_ps(pairs[2 * quad], pairs[2 * quad + 1]);
-            let total = _mm_add_ps(
-                _mm256_castps256_ps128(partial),
-                _mm256_extractf128_ps(partial, 1),
-            );
-            _mm_storeu_ps(target.add(4 * quad), total);
+        while k < rank {
+            let values = load(k);
+            for (channel, sum) in sums[0].iter_mut().enumerate() {
+                let factor = _mm256_broadcast_ss(&*light.add(channel * rank + k));
+                *sum = _mm256_fmadd_ps(values, factor, *sum);
+            }
+            k += 1;
         }
-        receiver += 4;
-    }
-    for index in whole..out.len() {
-        out[index] = reconstruct_wide(&weights[index * rank..], basis, rank);
+        let totals: [__m256; 3] = std::array::from_fn(|channel| {
+            _mm256_add_ps(
+                _mm256_add_ps(sums[0][channel], sums[1][channel]),
+                _mm256_add_ps(sums[2][channel], sums[3][channel]),
+            )
+        });
+        let mut channels = [[0.0f32; BLOCK_ROWS]; 3];
+        for (lanes, total) in channels.iter_mut().zip(totals) {
+            _mm256_storeu_ps(lanes.as_mut_ptr(), total);
+        }
+        for (lane, value) in rows.iter_mut().enumerate() {
+            *value = Rgb::new(channels[0][lane], channels[1][lane], channels[2][lane]);
+        }
+        if !packed.is_empty() {
+            let mut lanes = [Rgb9e5::default(); BLOCK_ROWS];
+            let bits = pack_rgb9e5_x8(totals[0], totals[1], totals[2]);
+            _mm256_storeu_si256(lanes.as_mut_ptr() as *mut __m256i, bits);
+            let first = block * BLOCK_ROWS;
+            packed[first..first + rows.len()].copy_from_slice(&lanes[..rows.len()]);
+        }
     }
 }
 
@@ -384,46 +401,58 @@ mod tests {
     use relight_core::SampleStream;
 
     #[test]
-    fn reconstruction_kernels_agree() {
-        let mut rng = SampleStream::new(4, 0, 0);
-        for rank in [8usize, 32, 40] {
-            let weights: Vec<u16> = (0..rank)
-                .map(|_| f16::from_f32(rng.next_f32() - 0.5).to_bits())
-                .collect();
-            let basis: Vec<f32> = (0..3 * rank).map(|_| rng.next_f32() * 4.0).collect();
-            let portable = reconstruct_portable(&weights, &basis, rank);
-            let mut dispatched = [Rgb::ZERO];
-            reconstruct_many(&weights, &basis, rank, &mut dispatched);
-            let dispatched = dispatched[0];
-            for channel in 0..3 {
-                let exact: f64 = (0..rank)
-                    .map(|k| f16::from_bits(weights[k]).to_f64() * basis[channel * rank + k] as f64)
-                    .sum();
-                // At most 40 terms of magnitude below 2.
-                assert!((portable[channel] as f64 - exact).abs() < 1e-4);
-                assert!((dispatched[channel] as f64 - exact).abs() < 1e-4);
-            }
-        }
-    }
-
-    #[test]
-    fn batched_reconstruction_matches_one_receiver_at_a_time() {
+    fn blocked_reconstruction_matches_the_sum_per_row() {
         let mut rng = SampleStream::new(5, 0, 0);
-        for (rank, receivers) in [(8usize, 1usize), (32, 7), (40, 9), (32, 64)] {
-            let weights: Vec<u16> = (0..rank * receivers)
-                .map(|_| f16::from_f32(rng.next_f32() - 0.5).to_bits())
+        // Ranks below, at and past the four-way split, odd ones included;
+        // row counts that leave partial blocks.
+        for (rank, rows) in [
+            (1usize, 1usize),
+            (3, 7),
+            (8, 8),
+            (32, 9),
+            (37, 64),
+            (40, 13),
+        ] {
+            let blocks = rows.div_ceil(BLOCK_ROWS);
+            let per_row: Vec<Vec<f32>> = (0..rows)
+                .map(|_| (0..rank).map(|_| rng.next_f32() - 0.5).collect())
                 .collect();
+            // Padding rows hold NaN-free garbage that must not leak into
+            // real rows.
+            let mut weights = vec![f16::from_f32(0.25).to_bits(); blocks * rank * BLOCK_ROWS];
+            for (row, values) in per_row.iter().enumerate() {
+                let (block, lane) = (row / BLOCK_ROWS, row % BLOCK_ROWS);
+                for (k, value) in values.iter().enumerate() {
+                    weights[(block * rank + k) * BLOCK_ROWS + lane] =
+                        f16::from_f32(*value).to_bits();
+                }
+            }
             let basis: Vec<f32> = (0..3 * rank).map(|_| rng.next_f32() * 4.0).collect();
-            let mut batched = vec![Rgb::splat(f32::NAN); receivers];
-            reconstruct_many(&weights, &basis, rank, &mut batched);
-            for (index, value) in batched.iter().enumerate() {
-                let single = reconstruct_portable(&weights[index * rank..], &basis, rank);
-                // Same products summed in another order: at most 40 terms
-                // below 2 in magnitude.
-                assert!(
-                    (*value - single).abs().max_element() < 1e-4,
-                    "rank {rank}, receiver {index}: {value} against {single}"
-                );
+            let mut dispatched = vec![Rgb::splat(f32::NAN); rows];
+            let mut packed = vec![Rgb9e5(u32::MAX); rows];
+            let mut portable = vec![Rgb::splat(f32::NAN); rows];
+            reconstruct_blocks(&weights, &basis, rank, &mut dispatched, &mut packed);
+            reconstruct_blocks_portable(&weights, &basis, rank, &mut portable);
+            for (value, packed) in dispatched.iter().zip(&packed) {
+                assert_eq!(*packed, Rgb9e5::from_rgb(*value));
+            }
+            for row in 0..rows {
+                for channel in 0..3 {
+                    let exact: f64 = (0..rank)
+                        .map(|k| {
+                            f16::from_f32(per_row[row][k]).to_f64()
+                                * basis[channel * rank + k] as f64
+                        })
+                        .sum();
+                    // At most 40 products below 2 in magnitude, summed in
+                    // f32 in two different orders.
+                    for value in [dispatched[row][channel], portable[row][channel]] {
+                        assert!(
+                            (value as f64 - exact).abs() < 1e-4,
+                            "rank {rank}, row {row}, channel {channel}: {value} against {exact}"
+                        );
+                    }
+                }
             }
         }
     }

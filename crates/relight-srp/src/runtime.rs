@@ -7,16 +7,13 @@ use crate::kernels;
 use crate::probes::falloff_weight;
 use glam::Vec3;
 use rayon::prelude::*;
-use relight_core::{sh, Rgb};
+use relight_core::{sh, Rgb, Rgb9e5};
 use relight_technique::{
     Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
 use std::sync::{Arc, OnceLock};
-
-/// Sorted receivers per reconstruction work item.
-const RECEIVER_CHUNK: usize = 2048;
 
 /// Run-time settings (one bake serves every value of them).
 #[derive(Clone, Copy, Debug)]
@@ -57,21 +54,28 @@ pub struct Srp {
     /// Per atlas texel (gutters through their source), the glossy slot of
     /// its receiver, or `u32::MAX`; empty without radiance transport.
     glossy_slot_of_texel: Vec<u32>,
+    /// The irradiance clusters' U rows, one per receiver, and the
+    /// radiance transport's, one per output coefficient, in blocks.
+    irradiance_rows: BlockedRows,
+    radiance_rows: BlockedRows,
     /// Atlas texel of each receiver in cluster order, so reconstruction
     /// writes the lightmap directly.
     sorted_texels: Vec<u32>,
     /// (position in cluster order, probe-visible index) of every
     /// probe-visible receiver, by position, and the first pair of each
-    /// reconstruction chunk: reconstruction copies these receivers'
-    /// irradiance into `visible_indirect` for multi-bounce feedback, which
-    /// then reads it in order instead of at scattered lightmap texels.
+    /// cluster: reconstruction copies these receivers' irradiance into
+    /// `visible_indirect` for multi-bounce feedback, which then reads it in
+    /// order instead of at scattered lightmap texels.
     visible_in_cluster_order: Vec<[u32; 2]>,
-    visible_chunk_starts: Vec<u32>,
+    visible_cluster_starts: Vec<u32>,
     /// Last reconstruction's irradiance at the probe-visible receivers.
     visible_indirect: Vec<Rgb>,
     /// Receiver-order copy of the lightmap, gathered only when asked for.
     receiver_values: OnceLock<Vec<Rgb>>,
-    lightmap: Vec<Rgb>,
+    /// Indirect irradiance per atlas texel, packed: reconstruction
+    /// scatters a texel per receiver each frame, and at a third of an Rgb's
+    /// bytes those writes and the dilation move a third of the memory.
+    lightmap: Vec<Rgb9e5>,
     timings: StageTimings,
     /// Round-robin position of staggered updates.
     next_probe: usize,
@@ -87,7 +91,10 @@ pub struct Srp {
 }
 
 impl Srp {
-    pub fn new(context: Arc<SceneContext>, bake: SrpBake, settings: RuntimeSettings) -> Self {
+    pub fn new(context: Arc<SceneContext>, mut bake: SrpBake, settings: RuntimeSettings) -> Self {
+        let irradiance_rows = BlockedRows::new(&mut bake.clusters, 1);
+        let outputs = bake.radiance.outputs();
+        let radiance_rows = BlockedRows::new(&mut bake.radiance.clusters, outputs);
         let coefficients = bake.coefficients();
         let samples = bake.sample_directions.len();
         let weight = 4.0 * PI / samples.max(1) as f32;
@@ -133,12 +140,12 @@ impl Srp {
                 (index != u32::MAX).then_some([position as u32, index])
             })
             .collect();
-        let chunk_count = bake.clusters.receivers.len().div_ceil(RECEIVER_CHUNK);
-        let visible_chunk_starts = (0..=chunk_count)
-            .map(|chunk| {
-                visible_in_cluster_order
-                    .partition_point(|&[position, _]| (position as usize) < chunk * RECEIVER_CHUNK)
-                    as u32
+        let visible_cluster_starts = bake
+            .clusters
+            .receiver_offsets
+            .iter()
+            .map(|&first| {
+                visible_in_cluster_order.partition_point(|&[position, _]| position < first) as u32
             })
             .collect();
         Self {
@@ -162,12 +169,17 @@ impl Srp {
                 bake.radiance.clusters.receivers.len() * bake.radiance.outputs()
             ],
             glossy_slot_of_texel: glossy_slots(&context, &bake),
+            irradiance_rows,
+            radiance_rows,
             sorted_texels,
             visible_in_cluster_order,
-            visible_chunk_starts,
+            visible_cluster_starts,
             visible_indirect: vec![Rgb::ZERO; visible.len()],
             receiver_values: OnceLock::new(),
-            lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
+            lightmap: vec![
+                Rgb9e5::default();
+                (context.atlas.width * context.atlas.height) as usize
+            ],
             timings: StageTimings::default(),
             next_probe: 0,
             refreshing: Vec::with_capacity(probe_count),
@@ -352,14 +364,18 @@ impl Srp {
             self.coefficients,
             &mut self.radiance_light_basis,
         );
-        let outputs = radiance.outputs();
-        let light_basis = &self.radiance_light_basis;
-        self.glossy_sh
-            .par_chunks_mut(RECEIVER_CHUNK)
-            .enumerate()
-            .for_each(|(chunk, out)| {
-                reconstruct_rows(clusters, outputs, light_basis, chunk * RECEIVER_CHUNK, out)
-            });
+        let glossy_sh = kernels::DisjointWriter::new(&mut self.glossy_sh);
+        self.radiance_rows.reconstruct_each(
+            clusters.rank,
+            &self.radiance_light_basis,
+            false,
+            |_, rows, values, _| {
+                for (row, value) in rows.zip(values) {
+                    // SAFETY: clusters own disjoint row ranges.
+                    unsafe { glossy_sh.write(row, *value) };
+                }
+            },
+        );
     }
 
     /// Glossy reflection from the radiance transport: the incident radiance
@@ -410,36 +426,32 @@ impl Srp {
     /// Irradiance per receiver: U_c times the cluster's light basis,
     /// written straight into the receiver's lightmap texel.
     fn reconstruct(&mut self) {
-        let clusters = &self.bake.clusters;
-        let light_basis = &self.light_basis;
         let texels = &self.sorted_texels;
         let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
         let visible_indirect = kernels::DisjointWriter::new(&mut self.visible_indirect);
         let (visible_pairs, visible_starts) =
-            (&self.visible_in_cluster_order, &self.visible_chunk_starts);
-        let total = clusters.receivers.len();
-        (0..total.div_ceil(RECEIVER_CHUNK))
-            .into_par_iter()
-            .for_each(|chunk| {
-                let mut values = [Rgb::ZERO; RECEIVER_CHUNK];
-                let start = chunk * RECEIVER_CHUNK;
-                let end = (start + RECEIVER_CHUNK).min(total);
-                let values = &mut values[..end - start];
-                reconstruct_rows(clusters, 1, light_basis, start, values);
-                for (value, &texel) in values.iter().zip(&texels[start..end]) {
+            (&self.visible_in_cluster_order, &self.visible_cluster_starts);
+        self.irradiance_rows.reconstruct_each(
+            self.bake.clusters.rank,
+            &self.light_basis,
+            true,
+            |cluster, rows, values, packed| {
+                let first = rows.start;
+                for (value, &texel) in packed.iter().zip(&texels[rows]) {
                     // SAFETY: the clusters' receivers are a permutation (checked
                     // when the bake is decoded) and receivers own distinct
                     // texels, so every texel is written by one sorted index.
-                    unsafe { lightmap.write(texel as usize, value.max(Rgb::ZERO)) };
+                    unsafe { lightmap.write(texel as usize, *value) };
                 }
-                let pairs = visible_starts[chunk] as usize..visible_starts[chunk + 1] as usize;
+                let pairs = visible_starts[cluster] as usize..visible_starts[cluster + 1] as usize;
                 for &[position, index] in &visible_pairs[pairs] {
-                    let value = values[position as usize - start].max(Rgb::ZERO);
+                    let value = values[position as usize - first].max(Rgb::ZERO);
                     // SAFETY: each probe-visible receiver has one position in
                     // cluster order, so one pair writes each index.
                     unsafe { visible_indirect.write(index as usize, value) };
                 }
-            });
+            },
+        );
     }
 
     /// The probes' radiance field at `position`, convolved per band with
@@ -501,37 +513,104 @@ impl Srp {
     }
 }
 
-/// U_c times each cluster's light basis (`light_basis[(cluster * 3 +
-/// channel) * rank + k]`) for the rows `first..first + out.len()` of
-/// `clusters`, which has `rows_per_receiver` rows per receiver in cluster
-/// order: the irradiance's one, the radiance transport's one per output
-/// coefficient.
-fn reconstruct_rows(
-    clusters: &ClusterSet,
-    rows_per_receiver: usize,
-    light_basis: &[f32],
-    first: usize,
-    out: &mut [Rgb],
-) {
-    let rank = clusters.rank;
-    let first_row_of =
-        |cluster: usize| clusters.receiver_offsets[cluster] as usize * rows_per_receiver;
-    let end = first + out.len();
-    let mut cluster = clusters
-        .receiver_offsets
-        .partition_point(|&offset| offset as usize * rows_per_receiver <= first)
-        - 1;
-    let mut row = first;
-    while row < end {
-        let cluster_end = first_row_of(cluster + 1).min(end);
-        kernels::reconstruct_many(
-            &clusters.reconstruction[row * rank..cluster_end * rank],
-            &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
+/// A cluster set's U rows, regrouped at load into blocks of
+/// [`kernels::BLOCK_ROWS`] rows of one cluster (the layout
+/// `kernels::reconstruct_blocks` reads), each cluster's last block padded
+/// with zero rows.
+#[derive(Default)]
+struct BlockedRows {
+    weights: Vec<u16>,
+    rank: usize,
+    /// First block of each cluster, then the block count.
+    block_starts: Vec<u32>,
+    /// First row of each cluster, then the row count.
+    row_starts: Vec<u32>,
+}
+
+impl BlockedRows {
+    /// Takes `clusters`' U rows (`rows_per_receiver` a receiver, in cluster
+    /// order), leaving the set's copy empty so they are not held twice.
+    fn new(clusters: &mut ClusterSet, rows_per_receiver: usize) -> Self {
+        let rank = clusters.rank;
+        let rows = std::mem::take(&mut clusters.reconstruction);
+        let row_starts: Vec<u32> = clusters
+            .receiver_offsets
+            .iter()
+            .map(|&offset| offset * rows_per_receiver as u32)
+            .collect();
+        if row_starts.is_empty() {
+            // No clusters (no radiance transport): nothing to hold.
+            return Self {
+                rank,
+                ..Self::default()
+            };
+        }
+        let mut block_starts = Vec::with_capacity(row_starts.len());
+        block_starts.push(0u32);
+        for pair in row_starts.windows(2) {
+            let blocks = ((pair[1] - pair[0]) as usize).div_ceil(kernels::BLOCK_ROWS);
+            block_starts.push(block_starts[block_starts.len() - 1] + blocks as u32);
+        }
+        let block_count = block_starts[block_starts.len() - 1] as usize;
+        let mut weights = vec![0u16; block_count * rank * kernels::BLOCK_ROWS];
+        for (pair, &first_block) in row_starts.windows(2).zip(&block_starts) {
+            for row in pair[0] as usize..pair[1] as usize {
+                let local = row - pair[0] as usize;
+                let block = first_block as usize + local / kernels::BLOCK_ROWS;
+                let lane = local % kernels::BLOCK_ROWS;
+                for (k, &weight) in rows[row * rank..(row + 1) * rank].iter().enumerate() {
+                    weights[(block * rank + k) * kernels::BLOCK_ROWS + lane] = weight;
+                }
+            }
+        }
+        Self {
+            weights,
             rank,
-            &mut out[row - first..cluster_end - first],
+            block_starts,
+            row_starts,
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        self.weights.len() * 2 + (self.block_starts.len() + self.row_starts.len()) * 4
+    }
+
+    /// U_c times each cluster's light basis (`light_basis[(cluster * 3 +
+    /// channel) * rank + k]`), clusters in parallel; `deliver` gets each
+    /// cluster's index, row range, values and (when `packed` is set) the
+    /// values packed for a lightmap.
+    fn reconstruct_each(
+        &self,
+        rank: usize,
+        light_basis: &[f32],
+        packed: bool,
+        deliver: impl Fn(usize, std::ops::Range<usize>, &[Rgb], &[Rgb9e5]) + Sync,
+    ) {
+        debug_assert_eq!(rank, self.rank);
+        let clusters = self.row_starts.len().saturating_sub(1);
+        (0..clusters).into_par_iter().for_each_init(
+            || (Vec::new(), Vec::new()),
+            |(values, packed_values), cluster| {
+                let rows = self.row_starts[cluster] as usize..self.row_starts[cluster + 1] as usize;
+                let blocks =
+                    self.block_starts[cluster] as usize..self.block_starts[cluster + 1] as usize;
+                values.clear();
+                values.resize(rows.len(), Rgb::ZERO);
+                packed_values.clear();
+                if packed {
+                    packed_values.resize(rows.len(), Rgb9e5::default());
+                }
+                kernels::reconstruct_blocks(
+                    &self.weights[blocks.start * rank * kernels::BLOCK_ROWS
+                        ..blocks.end * rank * kernels::BLOCK_ROWS],
+                    &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
+                    rank,
+                    values,
+                    packed_values,
+                );
+                deliver(cluster, rows, values, packed_values);
+            },
         );
-        row = cluster_end;
-        cluster += 1;
     }
 }
 
@@ -657,7 +736,7 @@ impl Technique for Srp {
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
         self.context
             .atlas
-            .sample(&self.lightmap, point.triangle, point.barycentric)
+            .sample_packed(&self.lightmap, point.triangle, point.barycentric)
     }
 
     /// Distance-weighted probes, each probe's radiance convolved with the
@@ -699,7 +778,7 @@ impl Technique for Srp {
                 .receivers
                 .texels
                 .par_iter()
-                .map(|&[x, y]| self.lightmap[y as usize * width + x as usize])
+                .map(|&[x, y]| self.lightmap[y as usize * width + x as usize].to_rgb())
                 .collect()
         }))
     }
@@ -769,8 +848,8 @@ impl Technique for Srp {
                 bake.clusters.projection.len() * 2,
             ),
             MemoryEntry::new(
-                "receiver reconstruction matrices (f16)",
-                bake.clusters.reconstruction.len() * 2,
+                "receiver reconstruction matrices (f16, blocks of 8)",
+                self.irradiance_rows.bytes(),
             ),
             MemoryEntry::new(
                 "cluster receiver and probe lists",
@@ -788,13 +867,15 @@ impl Technique for Srp {
                 "receiver texels and probe-visible feedback (cluster order)",
                 self.sorted_texels.len() * 4
                     + self.visible_in_cluster_order.len() * 8
-                    + self.visible_chunk_starts.len() * 4
+                    + self.visible_cluster_starts.len() * 4
                     + self.visible_indirect.len() * 12,
             ),
-            MemoryEntry::new("lightmap", self.lightmap.len() * 12),
+            MemoryEntry::new("lightmap (RGB9E5)", self.lightmap.len() * 4),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
-                bake.radiance.clusters.matrix_bytes() + bake.radiance.clusters.list_bytes(),
+                bake.radiance.clusters.matrix_bytes()
+                    + self.radiance_rows.bytes()
+                    + bake.radiance.clusters.list_bytes(),
             ),
             MemoryEntry::new(
                 "glossy receivers' radiance SH and texel slots",
@@ -803,5 +884,69 @@ impl Technique for Srp {
                     + self.glossy_slot_of_texel.len() * 4,
             ),
         ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use half::f16;
+    use relight_core::SampleStream;
+
+    #[test]
+    fn blocked_rows_reconstruct_every_row_of_its_cluster() {
+        let mut rng = SampleStream::new(9, 0, 0);
+        let (rank, rows_per_receiver) = (5usize, 2usize);
+        // Clusters of 5, 8 and 11 receivers: partial, whole and two-block
+        // (with rows_per_receiver 2: 10, 16 and 22 rows).
+        let receiver_offsets = vec![0u32, 5, 13, 24];
+        let rows = 24 * rows_per_receiver;
+        let weights: Vec<f32> = (0..rows * rank).map(|_| rng.next_f32() - 0.5).collect();
+        let mut clusters = ClusterSet {
+            rank,
+            receivers: (0..24).collect(),
+            receiver_offsets: receiver_offsets.clone(),
+            reconstruction: weights
+                .iter()
+                .map(|&w| f16::from_f32(w).to_bits())
+                .collect(),
+            ..Default::default()
+        };
+        let blocked = BlockedRows::new(&mut clusters, rows_per_receiver);
+        assert!(
+            clusters.reconstruction.is_empty(),
+            "the rows are moved, not copied"
+        );
+        let light_basis: Vec<f32> = (0..3 * 3 * rank).map(|_| rng.next_f32() * 2.0).collect();
+        let results = std::sync::Mutex::new(vec![(usize::MAX, Rgb::splat(f32::NAN)); rows]);
+        blocked.reconstruct_each(
+            rank,
+            &light_basis,
+            true,
+            |cluster, range, values, packed| {
+                assert_eq!(values.len(), range.len());
+                assert_eq!(packed.len(), range.len());
+                let mut results = results.lock().unwrap();
+                for (row, value) in range.zip(values) {
+                    results[row] = (cluster, *value);
+                }
+            },
+        );
+        for (row, &(cluster, value)) in results.into_inner().unwrap().iter().enumerate() {
+            let expected_cluster = receiver_offsets
+                .partition_point(|&first| first as usize * rows_per_receiver <= row)
+                - 1;
+            assert_eq!(cluster, expected_cluster, "row {row}");
+            for channel in 0..3 {
+                let exact: f64 = (0..rank)
+                    .map(|k| {
+                        f16::from_f32(weights[row * rank + k]).to_f64()
+                            * light_basis[(cluster * 3 + channel) * rank + k] as f64
+                    })
+                    .sum();
+                // Five products below 1 in magnitude, summed in f32.
+                assert!((value[channel] as f64 - exact).abs() < 1e-5, "row {row}");
+            }
+        }
     }
 }
