@@ -29,6 +29,8 @@ pub struct RuntimeSettings {
 
 pub struct Srp {
     context: Arc<SceneContext>,
+    /// The bake, less its U rows, which `irradiance_rows` and
+    /// `radiance_rows` hold in blocks.
     bake: SrpBake,
     settings: RuntimeSettings,
     coefficients: usize,
@@ -194,10 +196,6 @@ impl Srp {
             context,
             bake,
         }
-    }
-
-    pub fn bake(&self) -> &SrpBake {
-        &self.bake
     }
 
     /// The probe radiance vector (lambda) after the last update.
