@@ -364,7 +364,6 @@ impl Srp {
         );
         let glossy_sh = kernels::DisjointWriter::new(&mut self.glossy_sh);
         self.radiance_rows.reconstruct_each(
-            clusters.rank,
             &self.radiance_light_basis,
             false,
             |_, rows, values, _| {
@@ -430,7 +429,6 @@ impl Srp {
         let (visible_pairs, visible_starts) =
             (&self.visible_in_cluster_order, &self.visible_cluster_starts);
         self.irradiance_rows.reconstruct_each(
-            self.bake.clusters.rank,
             &self.light_basis,
             true,
             |cluster, rows, values, packed| {
@@ -579,12 +577,11 @@ impl BlockedRows {
     /// values packed for a lightmap.
     fn reconstruct_each(
         &self,
-        rank: usize,
         light_basis: &[f32],
         packed: bool,
         deliver: impl Fn(usize, std::ops::Range<usize>, &[Rgb], &[Rgb9e5]) + Sync,
     ) {
-        debug_assert_eq!(rank, self.rank);
+        let rank = self.rank;
         let clusters = self.row_starts.len().saturating_sub(1);
         (0..clusters).into_par_iter().for_each_init(
             || (Vec::new(), Vec::new()),
@@ -917,19 +914,14 @@ mod tests {
         );
         let light_basis: Vec<f32> = (0..3 * 3 * rank).map(|_| rng.next_f32() * 2.0).collect();
         let results = std::sync::Mutex::new(vec![(usize::MAX, Rgb::splat(f32::NAN)); rows]);
-        blocked.reconstruct_each(
-            rank,
-            &light_basis,
-            true,
-            |cluster, range, values, packed| {
-                assert_eq!(values.len(), range.len());
-                assert_eq!(packed.len(), range.len());
-                let mut results = results.lock().unwrap();
-                for (row, value) in range.zip(values) {
-                    results[row] = (cluster, *value);
-                }
-            },
-        );
+        blocked.reconstruct_each(&light_basis, true, |cluster, range, values, packed| {
+            assert_eq!(values.len(), range.len());
+            assert_eq!(packed.len(), range.len());
+            let mut results = results.lock().unwrap();
+            for (row, value) in range.zip(values) {
+                results[row] = (cluster, *value);
+            }
+        });
         for (row, &(cluster, value)) in results.into_inner().unwrap().iter().enumerate() {
             let expected_cluster = receiver_offsets
                 .partition_point(|&first| first as usize * rows_per_receiver <= row)
