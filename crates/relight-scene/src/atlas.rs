@@ -377,10 +377,25 @@ impl Atlas {
     /// weighted together (4-wide on x86-64).
     #[inline]
     pub fn sample_packed(&self, lightmap: &[Rgb9e5], triangle: u32, barycentric: Vec2) -> Rgb {
-        let taps = self.bilinear_texels(triangle, barycentric);
+        // The footprint inlines here, so texel indices and weights stay in
+        // registers; through `bilinear_texels` (a call returning them in
+        // memory) the weights came back as a 16-byte load of four 4-byte
+        // stores, which the store buffer cannot forward.
+        let ([upper_left, upper_right, lower_left, lower_right], fx, fy) =
+            self.bilinear_footprint(triangle, barycentric);
         relight_core::colour::bilinear_rgb9e5(
-            taps.map(|(texel, _)| lightmap[texel]),
-            taps.map(|(_, weight)| weight),
+            [
+                lightmap[upper_left],
+                lightmap[upper_right],
+                lightmap[lower_left],
+                lightmap[lower_right],
+            ],
+            [
+                (1.0 - fx) * (1.0 - fy),
+                fx * (1.0 - fy),
+                (1.0 - fx) * fy,
+                fx * fy,
+            ],
         )
     }
 
