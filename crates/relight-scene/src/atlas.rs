@@ -349,7 +349,9 @@ impl Atlas {
     /// The four texels around a surface point for a bilinear lookup (texel
     /// centres at half-integer UVs, clamped at the atlas edge), as (texel
     /// index, weight) in the order (x0, y0), (x1, y0), (x0, y1), (x1, y1).
-    /// For lookups that skip texels with nothing in them and renormalise.
+    /// For lookups that skip texels with nothing in them and renormalise;
+    /// inlined so that the taps stay in registers (per-pixel shading).
+    #[inline]
     pub fn bilinear_texels(&self, triangle: u32, barycentric: Vec2) -> [(usize, f32); 4] {
         let ([upper_left, upper_right, lower_left, lower_right], fx, fy) =
             self.bilinear_footprint(triangle, barycentric);
