@@ -88,6 +88,20 @@ pub fn evaluate_filtered(
     }
 }
 
+/// [`evaluate_filtered`] for all of the first four bands at once, in
+/// closed form and inlined: per-pixel lookups with at most four bands use
+/// it without the call, the length checks and the copy of the general form
+/// (a lookup that needs fewer bands ignores the rest).
+#[inline(always)]
+pub fn evaluate_four_bands_filtered(direction: Vec3, factors: &[f32; MAX_BANDS]) -> [f32; 16] {
+    const BAND_OF_COEFFICIENT: [usize; 16] = [0, 1, 1, 1, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3];
+    let mut values = evaluate_four_bands(direction);
+    for (value, band) in values.iter_mut().zip(BAND_OF_COEFFICIENT) {
+        *value *= factors[band];
+    }
+    values
+}
+
 /// The first four bands (16 coefficients) in closed form: the
 /// recurrence's Legendre polynomials in z times Re and Im of (x + i y)^m,
 /// with the normalisation folded into each constant (same convention, no
@@ -298,6 +312,20 @@ mod tests {
                 }
                 assert!(closed[bands * bands..].iter().all(|value| value.is_nan()));
             }
+        }
+    }
+
+    /// The inlined four-band form gives the general form's bits: same
+    /// closed-form basis, same single multiply by the band's factor.
+    #[test]
+    fn four_band_filtered_basis_is_the_general_one() {
+        let factors = [0.9, -0.7, 0.45, 0.3, 0.2, 0.1, 0.05, 0.01];
+        let mut rng = crate::sampling::Pcg32::new(3, 8);
+        for _ in 0..200 {
+            let direction = crate::sampling::uniform_sphere(rng.next_vec2());
+            let mut general = [0.0f32; 16];
+            evaluate_filtered(direction, 4, &factors, &mut general);
+            assert_eq!(evaluate_four_bands_filtered(direction, &factors), general);
         }
     }
 
