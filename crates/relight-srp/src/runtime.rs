@@ -92,8 +92,36 @@ pub struct Srp {
     updates: u64,
 }
 
+/// Puts the probe-visible receivers (the texels whose direct light every
+/// frame computes) in Morton order of their positions instead of the
+/// bake's ascending receiver order, which is lightmap scan-line order and
+/// hops between charts every few texels; the sample tables are renumbered
+/// to match. Shadow rays in this order share occluders and BVH nodes.
+fn order_visible_receivers_spatially(bake: &mut SrpBake, positions: &[Vec3]) {
+    let visible_positions: Vec<Vec3> = bake
+        .visible_receivers
+        .iter()
+        .map(|&receiver| positions[receiver as usize])
+        .collect();
+    let order = relight_trace::direct::morton_order(&visible_positions);
+    let mut new_index_of = vec![0u32; order.len()];
+    for (new_index, &old_index) in order.iter().enumerate() {
+        new_index_of[old_index as usize] = new_index as u32;
+    }
+    bake.visible_receivers = order
+        .iter()
+        .map(|&old_index| bake.visible_receivers[old_index as usize])
+        .collect();
+    for target in &mut bake.sample_targets {
+        if *target < BACK_FACE {
+            *target = new_index_of[*target as usize];
+        }
+    }
+}
+
 impl Srp {
     pub fn new(context: Arc<SceneContext>, mut bake: SrpBake, settings: RuntimeSettings) -> Self {
+        order_visible_receivers_spatially(&mut bake, &context.atlas.receivers.positions);
         let irradiance_rows = BlockedRows::new(&mut bake.clusters, 1);
         let outputs = bake.radiance.outputs();
         let radiance_rows = BlockedRows::new(&mut bake.radiance.clusters, outputs);

@@ -19,6 +19,40 @@ use relight_scene::{Light, Scene};
 /// Points per rayon task: enough shadow rays to amortise scheduling.
 const POINTS_PER_TASK: usize = 256;
 
+/// The indices of `points` sorted along a Morton curve over their bounds
+/// (ties by index, so the order is deterministic). Batches of shadow rays
+/// from points in this order run much faster than from points in, say,
+/// lightmap scan-line order: neighbouring points share their occluders
+/// (the shadow cache's first guess) and their BVH nodes stay in cache.
+pub fn morton_order(points: &[Vec3]) -> Vec<u32> {
+    let (low, high) = points.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(low, high), point| (low.min(*point), high.max(*point)),
+    );
+    let cell_scale = Vec3::splat(1023.0) / (high - low).max(Vec3::splat(1e-20));
+    let mut order: Vec<u32> = (0..points.len() as u32).collect();
+    order.sort_by_cached_key(|&index| {
+        let cell = ((points[index as usize] - low) * cell_scale)
+            .clamp(Vec3::ZERO, Vec3::splat(1023.0))
+            .as_uvec3()
+            .to_array();
+        (morton_code(cell), index)
+    });
+    order
+}
+
+/// Interleaves the bits of a 10-bit-per-axis grid position.
+pub fn morton_code(cell: [u32; 3]) -> u32 {
+    let spread = |mut value: u32| {
+        value &= 0x3ff;
+        value = (value | (value << 16)) & 0x0300_00ff;
+        value = (value | (value << 8)) & 0x0300_f00f;
+        value = (value | (value << 4)) & 0x030c_30c3;
+        (value | (value << 2)) & 0x0924_9249
+    };
+    spread(cell[0]) | (spread(cell[1]) << 1) | (spread(cell[2]) << 2)
+}
+
 /// Settings of the direct-light service.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DirectSettings {
@@ -399,6 +433,33 @@ pub fn spot_falloff(cosine: f32, inner: f32, outer: f32) -> f32 {
 mod tests {
     use super::*;
     use relight_scene::{Environment, Material, Mesh};
+
+    /// The eight corners of a box come out in Morton order (x the lowest
+    /// bit, then y, then z), ties keep index order, and the result is a
+    /// permutation.
+    #[test]
+    fn morton_order_walks_the_z_curve() {
+        let corner = |code: u32| {
+            Vec3::new(
+                (code & 1) as f32,
+                ((code >> 1) & 1) as f32 * 2.0,
+                ((code >> 2) & 1) as f32 * 3.0,
+            )
+        };
+        // Corners listed in a scrambled order, plus a duplicate of corner 5.
+        let codes = [6u32, 1, 5, 0, 7, 3, 2, 4, 5];
+        let points: Vec<Vec3> = codes.iter().map(|&code| corner(code)).collect();
+        let order = morton_order(&points);
+        let walked: Vec<u32> = order.iter().map(|&index| codes[index as usize]).collect();
+        assert_eq!(walked, [0, 1, 2, 3, 4, 5, 5, 6, 7]);
+        // The two copies of corner 5 (indices 2 and 8) keep index order.
+        assert_eq!(order[5..7], [2, 8]);
+        assert_eq!(morton_code([1, 0, 0]), 1);
+        assert_eq!(morton_code([0, 1, 0]), 2);
+        assert_eq!(morton_code([0, 0, 1]), 4);
+        assert_eq!(morton_code([1023, 1023, 1023]), (1 << 30) - 1);
+        assert!(morton_order(&[]).is_empty());
+    }
 
     /// A 2x2 m floor at y = 0 facing up, and optionally an emissive square
     /// facing down at height `light_height`.

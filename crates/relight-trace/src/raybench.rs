@@ -17,6 +17,7 @@
 //! is the median of [`BUILD_REPEATS`] builds.
 
 use crate::bvh::{Bvh, Hit, Ray};
+use crate::direct::morton_code;
 use glam::Vec3;
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, uniform_triangle, SampleStream};
@@ -105,18 +106,6 @@ fn surface_points(
             (point, normal)
         })
         .collect()
-}
-
-/// Interleaves the bits of a 10-bit-per-axis grid position.
-fn morton_code(cell: [u32; 3]) -> u32 {
-    let spread = |mut value: u32| {
-        value &= 0x3ff;
-        value = (value | (value << 16)) & 0x0300_00ff;
-        value = (value | (value << 8)) & 0x0300_f00f;
-        value = (value | (value << 4)) & 0x030c_30c3;
-        (value | (value << 2)) & 0x0924_9249
-    };
-    spread(cell[0]) | (spread(cell[1]) << 1) | (spread(cell[2]) << 2)
 }
 
 impl RaySets {
