@@ -401,6 +401,35 @@ impl Atlas {
         )
     }
 
+    /// [`Atlas::sample_packed`] of values stored per slot, with `slots`
+    /// naming each texel's slot.
+    #[inline]
+    pub fn sample_packed_slots(
+        &self,
+        slots: &[u32],
+        values: &[Rgb9e5],
+        triangle: u32,
+        barycentric: Vec2,
+    ) -> Rgb {
+        let ([upper_left, upper_right, lower_left, lower_right], fx, fy) =
+            self.bilinear_footprint(triangle, barycentric);
+        let value = |texel: usize| values[slots[texel] as usize];
+        relight_core::colour::bilinear_rgb9e5(
+            [
+                value(upper_left),
+                value(upper_right),
+                value(lower_left),
+                value(lower_right),
+            ],
+            [
+                (1.0 - fx) * (1.0 - fy),
+                fx * (1.0 - fy),
+                (1.0 - fx) * fy,
+                fx * fy,
+            ],
+        )
+    }
+
     /// The texels (x0, y0), (x1, y0), (x0, y1), (x1, y1) around a point,
     /// clamped at the atlas edge, and the fractions toward x1 and y1.
     #[inline]

@@ -383,15 +383,15 @@ impl<T> DisjointWriter<T> {
         self.pointer.add(index).write(value);
     }
 
+    /// The elements `range` as a slice of their own.
+    ///
     /// # Safety
-    /// No task may write `index` while the writer lives.
+    /// No other task may touch `range` while the slice lives.
     #[inline]
-    pub unsafe fn read(&self, index: usize) -> T
-    where
-        T: Copy,
-    {
-        assert!(index < self.length);
-        self.pointer.add(index).read()
+    #[allow(clippy::mut_from_ref)]
+    pub unsafe fn slice(&self, range: std::ops::Range<usize>) -> &mut [T] {
+        assert!(range.start <= range.end && range.end <= self.length);
+        std::slice::from_raw_parts_mut(self.pointer.add(range.start), range.len())
     }
 }
 

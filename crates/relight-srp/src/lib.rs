@@ -28,8 +28,11 @@
 //! frame's indirect irradiance, times albedo / pi, for further bounces);
 //! probe projection into SH through the sample tables; per cluster the
 //! light basis vector Sigma_c V^T lambda; per receiver U_c times it,
-//! written straight into its lightmap texel; then the gutters are dilated,
-//! and the lightmap is sampled bilinearly when shading.
+//! stored packed (RGB9E5) in cluster order. The lightmap is that array seen
+//! through a map from atlas texel to receiver made at load, with the
+//! gutters pointing at the texels they copy: dilation done once, so a frame
+//! neither scatters texel writes nor copies gutters. Shading samples it
+//! bilinearly through the map.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|

@@ -1,6 +1,7 @@
 //! The SRP run time: direct light where probes look, probe projection into
 //! SH, per-cluster projection onto the principal vectors, reconstruction
-//! per receiver, dilation.
+//! per receiver into a cluster-order array that a texel map (the dilated
+//! lightmap, made at load) lets shading sample.
 
 use crate::bake::{ClusterSet, SrpBake, BACK_FACE};
 use crate::kernels;
@@ -60,9 +61,6 @@ pub struct Srp {
     /// radiance transport's, one per output coefficient, in blocks.
     irradiance_rows: BlockedRows,
     radiance_rows: BlockedRows,
-    /// Atlas texel of each receiver in cluster order, so reconstruction
-    /// writes the lightmap directly.
-    sorted_texels: Vec<u32>,
     /// (position in cluster order, probe-visible index) of every
     /// probe-visible receiver, by position, and the first pair of each
     /// cluster: reconstruction copies these receivers' irradiance into
@@ -74,10 +72,16 @@ pub struct Srp {
     visible_indirect: Vec<Rgb>,
     /// Receiver-order copy of the lightmap, gathered only when asked for.
     receiver_values: OnceLock<Vec<Rgb>>,
-    /// Indirect irradiance per atlas texel, packed: reconstruction
-    /// scatters a texel per receiver each frame, and at a third of an Rgb's
-    /// bytes those writes and the dilation move a third of the memory.
-    lightmap: Vec<Rgb9e5>,
+    /// Indirect irradiance per receiver in cluster order, packed, and one
+    /// zero slot after them: reconstruction writes each cluster's values
+    /// in one run instead of scattering them over lightmap texels.
+    irradiance: Vec<Rgb9e5>,
+    /// The lightmap as a map: per atlas texel, the `irradiance` slot it
+    /// shows (gutters their source's, other texels the zero slot). This is
+    /// the dilation done once at load; the lightmap it stands for is
+    /// identical to a dilated one, and a frame saves both the scattered
+    /// texel writes and the dilation's copies.
+    slot_of_texel: Vec<u32>,
     timings: StageTimings,
     /// Round-robin position of staggered updates.
     next_probe: usize,
@@ -146,16 +150,14 @@ impl Srp {
         let visible_normals = pick(&receivers.normals);
         let visible_albedos = pick(&receivers.albedos);
         let probe_count = bake.probes.len();
-        let texel_of = |receiver: u32| -> u32 {
-            let [x, y] = receivers.texels[receiver as usize];
-            y * context.atlas.width + x
-        };
-        let sorted_texels = bake
-            .clusters
-            .receivers
-            .iter()
-            .map(|&r| texel_of(r))
-            .collect();
+        // The zero slot past the receivers is where texels showing none
+        // read.
+        let slot_of_texel = texel_slots(
+            &context,
+            &bake.clusters.receivers,
+            bake.receiver_count,
+            receivers.len() as u32,
+        );
         let mut visible_index_of = vec![u32::MAX; receivers.len()];
         for (index, &receiver) in visible.iter().enumerate() {
             visible_index_of[receiver as usize] = index as u32;
@@ -201,15 +203,12 @@ impl Srp {
             glossy_slot_of_texel: glossy_slots(&context, &bake),
             irradiance_rows,
             radiance_rows,
-            sorted_texels,
             visible_in_cluster_order,
             visible_cluster_starts,
             visible_indirect: vec![Rgb::ZERO; visible.len()],
             receiver_values: OnceLock::new(),
-            lightmap: vec![
-                Rgb9e5::default();
-                (context.atlas.width * context.atlas.height) as usize
-            ],
+            irradiance: vec![Rgb9e5::default(); receivers.len() + 1],
+            slot_of_texel,
             timings: StageTimings::default(),
             next_probe: 0,
             refreshing: Vec::with_capacity(probe_count),
@@ -391,16 +390,13 @@ impl Srp {
             &mut self.radiance_light_basis,
         );
         let glossy_sh = kernels::DisjointWriter::new(&mut self.glossy_sh);
-        self.radiance_rows.reconstruct_each(
-            &self.radiance_light_basis,
-            false,
-            |_, rows, values, _| {
+        self.radiance_rows
+            .reconstruct_each(&self.radiance_light_basis, None, |_, rows, values| {
                 for (row, value) in rows.zip(values) {
                     // SAFETY: clusters own disjoint row ranges.
                     unsafe { glossy_sh.write(row, *value) };
                 }
-            },
-        );
+            });
     }
 
     /// Glossy reflection from the radiance transport: the incident radiance
@@ -449,24 +445,17 @@ impl Srp {
     }
 
     /// Irradiance per receiver: U_c times the cluster's light basis,
-    /// written straight into the receiver's lightmap texel.
+    /// packed in cluster order.
     fn reconstruct(&mut self) {
-        let texels = &self.sorted_texels;
-        let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
         let visible_indirect = kernels::DisjointWriter::new(&mut self.visible_indirect);
         let (visible_pairs, visible_starts) =
             (&self.visible_in_cluster_order, &self.visible_cluster_starts);
+        let receivers = self.irradiance.len() - 1;
         self.irradiance_rows.reconstruct_each(
             &self.light_basis,
-            true,
-            |cluster, rows, values, packed| {
+            Some(&mut self.irradiance[..receivers]),
+            |cluster, rows, values| {
                 let first = rows.start;
-                for (value, &texel) in packed.iter().zip(&texels[rows]) {
-                    // SAFETY: the clusters' receivers are a permutation (checked
-                    // when the bake is decoded) and receivers own distinct
-                    // texels, so every texel is written by one sorted index.
-                    unsafe { lightmap.write(texel as usize, *value) };
-                }
                 let pairs = visible_starts[cluster] as usize..visible_starts[cluster + 1] as usize;
                 for &[position, index] in &visible_pairs[pairs] {
                     let value = values[position as usize - first].max(Rgb::ZERO);
@@ -601,39 +590,44 @@ impl BlockedRows {
 
     /// U_c times each cluster's light basis (`light_basis[(cluster * 3 +
     /// channel) * rank + k]`), clusters in parallel; `deliver` gets each
-    /// cluster's index, row range, values and (when `packed` is set) the
-    /// values packed for a lightmap.
+    /// cluster's index, row range and values. With `packed`, every value
+    /// also lands there packed, at its row.
     fn reconstruct_each(
         &self,
         light_basis: &[f32],
-        packed: bool,
-        deliver: impl Fn(usize, std::ops::Range<usize>, &[Rgb], &[Rgb9e5]) + Sync,
+        packed: Option<&mut [Rgb9e5]>,
+        deliver: impl Fn(usize, std::ops::Range<usize>, &[Rgb]) + Sync,
     ) {
         let rank = self.rank;
         let clusters = self.row_starts.len().saturating_sub(1);
-        (0..clusters).into_par_iter().for_each_init(
-            || (Vec::new(), Vec::new()),
-            |(values, packed_values), cluster| {
+        let rows_total = self.row_starts.last().copied().unwrap_or(0) as usize;
+        let packed = packed.map(|packed| {
+            assert_eq!(packed.len(), rows_total);
+            kernels::DisjointWriter::new(packed)
+        });
+        (0..clusters)
+            .into_par_iter()
+            .for_each_init(Vec::new, |values, cluster| {
                 let rows = self.row_starts[cluster] as usize..self.row_starts[cluster + 1] as usize;
                 let blocks =
                     self.block_starts[cluster] as usize..self.block_starts[cluster + 1] as usize;
                 values.clear();
                 values.resize(rows.len(), Rgb::ZERO);
-                packed_values.clear();
-                if packed {
-                    packed_values.resize(rows.len(), Rgb9e5::default());
-                }
+                let packed_rows = match &packed {
+                    // SAFETY: clusters own disjoint row ranges.
+                    Some(packed) => unsafe { packed.slice(rows.clone()) },
+                    None => &mut [],
+                };
                 kernels::reconstruct_blocks(
                     &self.weights[blocks.start * rank * kernels::BLOCK_ROWS
                         ..blocks.end * rank * kernels::BLOCK_ROWS],
                     &light_basis[cluster * 3 * rank..(cluster + 1) * 3 * rank],
                     rank,
                     values,
-                    packed_values,
+                    packed_rows,
                 );
-                deliver(cluster, rows, values, packed_values);
-            },
-        );
+                deliver(cluster, rows, values);
+            });
     }
 }
 
@@ -680,8 +674,25 @@ fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
     if radiance.bands == 0 {
         return Vec::new();
     }
-    let mut slot_of_receiver = vec![u32::MAX; bake.receiver_count];
-    for (slot, &receiver) in radiance.clusters.receivers.iter().enumerate() {
+    texel_slots(
+        context,
+        &radiance.clusters.receivers,
+        bake.receiver_count,
+        u32::MAX,
+    )
+}
+
+/// Per atlas texel, the position in `ordered_receivers` of the receiver it
+/// shows (gutter texels through the covered texel they copy), or
+/// `missing` where there is none.
+fn texel_slots(
+    context: &SceneContext,
+    ordered_receivers: &[u32],
+    receiver_count: usize,
+    missing: u32,
+) -> Vec<u32> {
+    let mut slot_of_receiver = vec![missing; receiver_count];
+    for (slot, &receiver) in ordered_receivers.iter().enumerate() {
         slot_of_receiver[receiver as usize] = slot as u32;
     }
     context
@@ -692,7 +703,7 @@ fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
             slot_of_receiver
                 .get(receiver as usize)
                 .copied()
-                .unwrap_or(u32::MAX)
+                .unwrap_or(missing)
         })
         .collect()
 }
@@ -738,28 +749,18 @@ impl Technique for Srp {
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }
-        // Reconstruction wrote the receivers' texels; the gutters copy them.
-        timings.time("dilation", || {
-            let atlas = &self.context.atlas;
-            let lightmap = kernels::DisjointWriter::new(&mut self.lightmap);
-            atlas.dilation.par_chunks(8192).for_each(|pairs| {
-                for &(target, source) in pairs {
-                    // SAFETY: gutter targets are distinct and never sources
-                    // (sources are covered texels), so no element is both
-                    // read and written, nor written twice.
-                    unsafe { lightmap.write(target as usize, lightmap.read(source as usize)) };
-                }
-            });
-        });
         self.timings = timings;
         self.updates += 1;
         Ok(())
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        self.context
-            .atlas
-            .sample_packed(&self.lightmap, point.triangle, point.barycentric)
+        self.context.atlas.sample_packed_slots(
+            &self.slot_of_texel,
+            &self.irradiance,
+            point.triangle,
+            point.barycentric,
+        )
     }
 
     /// Distance-weighted probes, each probe's radiance convolved with the
@@ -801,7 +802,10 @@ impl Technique for Srp {
                 .receivers
                 .texels
                 .par_iter()
-                .map(|&[x, y]| self.lightmap[y as usize * width + x as usize].to_rgb())
+                .map(|&[x, y]| {
+                    self.irradiance[self.slot_of_texel[y as usize * width + x as usize] as usize]
+                        .to_rgb()
+                })
                 .collect()
         }))
     }
@@ -887,13 +891,16 @@ impl Technique for Srp {
             MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
             MemoryEntry::new(
-                "receiver texels and probe-visible feedback (cluster order)",
-                self.sorted_texels.len() * 4
-                    + self.visible_in_cluster_order.len() * 8
+                "probe-visible feedback (cluster order)",
+                self.visible_in_cluster_order.len() * 8
                     + self.visible_cluster_starts.len() * 4
                     + self.visible_indirect.len() * 12,
             ),
-            MemoryEntry::new("lightmap (RGB9E5)", self.lightmap.len() * 4),
+            MemoryEntry::new(
+                "irradiance per receiver (RGB9E5, cluster order)",
+                self.irradiance.len() * 4,
+            ),
+            MemoryEntry::new("lightmap slot per texel", self.slot_of_texel.len() * 4),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
                 bake.radiance.clusters.matrix_bytes()
@@ -942,15 +949,17 @@ mod tests {
         );
         let light_basis: Vec<f32> = (0..3 * 3 * rank).map(|_| rng.next_f32() * 2.0).collect();
         let results = std::sync::Mutex::new(vec![(usize::MAX, Rgb::splat(f32::NAN)); rows]);
-        blocked.reconstruct_each(&light_basis, true, |cluster, range, values, packed| {
+        let mut packed = vec![Rgb9e5(u32::MAX); rows];
+        blocked.reconstruct_each(&light_basis, Some(&mut packed), |cluster, range, values| {
             assert_eq!(values.len(), range.len());
-            assert_eq!(packed.len(), range.len());
             let mut results = results.lock().unwrap();
             for (row, value) in range.zip(values) {
                 results[row] = (cluster, *value);
             }
         });
         for (row, &(cluster, value)) in results.into_inner().unwrap().iter().enumerate() {
+            // Every row's packed value lands at that row.
+            assert_eq!(packed[row], Rgb9e5::from_rgb(value), "row {row}");
             let expected_cluster = receiver_offsets
                 .partition_point(|&first| first as usize * rows_per_receiver <= row)
                 - 1;

@@ -591,3 +591,50 @@ fn damaged_bakes_never_panic() {
         "{accepted} accepted, {refused} refused"
     );
 }
+
+/// The run time keeps irradiance per receiver and reads the lightmap
+/// through a texel map made at load (gutters pointing at the texels they
+/// copy) instead of dilating a lightmap every frame. Lookups anywhere on
+/// the surface, edges included, must give what a per-frame dilated
+/// lightmap of the same values gives.
+#[test]
+fn lookups_match_a_dilated_lightmap() {
+    let context = context("cornell-box");
+    let technique = srp(&context, &[("samples", "16"), ("probe_samples", "64")]);
+    let receivers = technique
+        .receiver_irradiance()
+        .expect("SRP has receiver values");
+    let lightmap = context.atlas.to_lightmap(receivers);
+    let mesh = &context.scene.mesh;
+    let mut rng = relight_core::sampling::Pcg32::new(11, 2);
+    let mut brightest = 0.0f32;
+    let corners = [
+        glam::Vec2::ZERO,
+        glam::Vec2::X,
+        glam::Vec2::Y,
+        glam::Vec2::splat(0.5),
+    ];
+    for triangle in 0..mesh.triangles.len() {
+        let random = (0..8).map(|_| relight_core::sampling::uniform_triangle(rng.next_vec2()));
+        for barycentric in corners.into_iter().chain(random) {
+            let point = relight_technique::SurfacePoint {
+                position: mesh.point_at(triangle, barycentric),
+                normal: mesh.geometric_normal(triangle),
+                triangle: triangle as u32,
+                barycentric,
+            };
+            let looked_up = technique.indirect_irradiance(&point);
+            let dilated = context
+                .atlas
+                .sample(&lightmap, triangle as u32, barycentric);
+            brightest = brightest.max(dilated.max_element());
+            // Same four values and weights, blended in a different order
+            // (weighted sum against nested lerps): f32 rounding only.
+            assert!(
+                (looked_up - dilated).abs().max_element() <= 1e-5 * dilated.max_element().max(1.0),
+                "triangle {triangle} at {barycentric}: {looked_up} against {dilated}"
+            );
+        }
+    }
+    assert!(brightest > 0.0, "the lookups saw light");
+}
