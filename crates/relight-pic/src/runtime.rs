@@ -32,6 +32,13 @@ pub struct RuntimeSettings {
 pub struct Pic {
     context: Arc<SceneContext>,
     bake: PicBake,
+    /// Link nodes of SH-projected links as u16 where the hierarchy has at
+    /// most 65,536 nodes (the moderate preset's 32k surfels make 63.5k):
+    /// the bake's u32 nodes are then moved out, and a link streams 20
+    /// bytes a frame instead of 22.
+    narrow_link_nodes: Vec<u16>,
+    /// Links in the bake, whichever array holds their nodes.
+    link_count: usize,
     settings: RuntimeSettings,
     /// The cache atlas when it is not the scene's.
     own_atlas: Option<Atlas>,
@@ -64,7 +71,7 @@ pub struct Pic {
 impl Pic {
     pub fn new(
         context: Arc<SceneContext>,
-        bake: PicBake,
+        mut bake: PicBake,
         mut settings: RuntimeSettings,
     ) -> Result<Self, TechniqueError> {
         if bake.projected_bands > 0 {
@@ -124,7 +131,18 @@ impl Pic {
                 .all(|&node| (node as usize) < flux.len()),
             "a PIC link names a missing hierarchy node"
         );
+        let link_count = bake.link_nodes.len();
+        let narrow_link_nodes = if bake.projected_bands > 0 && flux.len() <= 1 << 16 {
+            std::mem::take(&mut bake.link_nodes)
+                .into_iter()
+                .map(|node| node as u16)
+                .collect()
+        } else {
+            Vec::new()
+        };
         let mut technique = Pic {
+            narrow_link_nodes,
+            link_count,
             surfel_taps: Vec::new(),
             surfel_basis,
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
@@ -445,7 +463,9 @@ impl Pic {
         let inverse_scale = 1.0 / bake.factor_scale;
         let stride = self.stride;
         let fast = bands <= 4 && bake.projected_bands == 0 && kernels_available();
-        let projected_kernel = projected_kernel(bands);
+        let wide_kernel = projected_kernel::<u32>(bands);
+        let narrow_kernel = projected_kernel::<u16>(bands);
+        let narrow_nodes = &self.narrow_link_nodes;
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
@@ -463,21 +483,33 @@ impl Pic {
                             let count = bands * bands;
                             let coefficients =
                                 &bake.link_coefficients[range.start * count..range.end * count];
-                            let nodes = &bake.link_nodes[range];
                             // SAFETY: `projected_kernel` picks the vector kernel
                             // only where the CPU has it; `Pic::new` checked that
                             // every link node indexes `flux`.
                             unsafe {
-                                projected_kernel(
-                                    coefficients,
-                                    nodes,
-                                    flux,
-                                    count,
-                                    chroma_count,
-                                    luma,
-                                    co,
-                                    cg,
-                                )
+                                if narrow_nodes.is_empty() {
+                                    wide_kernel(
+                                        coefficients,
+                                        &bake.link_nodes[range],
+                                        flux,
+                                        count,
+                                        chroma_count,
+                                        luma,
+                                        co,
+                                        cg,
+                                    )
+                                } else {
+                                    narrow_kernel(
+                                        coefficients,
+                                        &narrow_nodes[range],
+                                        flux,
+                                        count,
+                                        chroma_count,
+                                        luma,
+                                        co,
+                                        cg,
+                                    )
+                                }
                             };
                         } else {
                             let slice = LinkSlice {
@@ -507,6 +539,11 @@ impl Pic {
                     }
                 },
             );
+    }
+
+    /// The links' bytes as held at run time (nodes possibly narrowed).
+    fn link_bytes(&self) -> usize {
+        self.bake.link_bytes() + self.narrow_link_nodes.len() * 2
     }
 
     /// Diffuse irradiance (RGB) at a point of the static scene.
@@ -613,14 +650,14 @@ unsafe fn light_cache_avx2(
 }
 
 /// The signature both projected-link kernels share.
-type ProjectedKernel =
-    unsafe fn(&[u16], &[u32], &[Vec3], usize, usize, &mut [f32], &mut [f32], &mut [f32]);
+type ProjectedKernel<Node> =
+    unsafe fn(&[u16], &[Node], &[Vec3], usize, usize, &mut [f32], &mut [f32], &mut [f32]);
 
 /// Projected links: coefficients times flux, `count` coefficients per link.
 #[allow(clippy::too_many_arguments)]
-fn light_cache_projected(
+fn light_cache_projected<Node: Copy + Into<u32>>(
     coefficients: &[u16],
-    nodes: &[u32],
+    nodes: &[Node],
     flux: &[Vec3],
     count: usize,
     chroma_count: usize,
@@ -632,7 +669,7 @@ fn light_cache_projected(
     co.fill(0.0);
     cg.fill(0.0);
     for (link, &node) in nodes.iter().enumerate() {
-        let node_flux = flux[node as usize];
+        let node_flux = flux[node.into() as usize];
         for (index, &bits) in coefficients[link * count..(link + 1) * count]
             .iter()
             .enumerate()
@@ -649,7 +686,7 @@ fn light_cache_projected(
 
 /// The projected-link kernel for `bands`: F16C and AVX2 where the CPU has
 /// them (up to 16 coefficients), the scalar loop elsewhere.
-fn projected_kernel(bands: usize) -> ProjectedKernel {
+fn projected_kernel<Node: Copy + Into<u32>>(bands: usize) -> ProjectedKernel<Node> {
     #[cfg(target_arch = "x86_64")]
     if bands <= 4 && projected_kernel_available() {
         return light_cache_projected_avx2;
@@ -675,9 +712,9 @@ fn projected_kernel_available() -> bool {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,f16c")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn light_cache_projected_avx2(
+unsafe fn light_cache_projected_avx2<Node: Copy + Into<u32>>(
     coefficients: &[u16],
-    nodes: &[u32],
+    nodes: &[Node],
     flux: &[Vec3],
     count: usize,
     chroma_count: usize,
@@ -687,7 +724,9 @@ unsafe fn light_cache_projected_avx2(
 ) {
     use std::arch::x86_64::*;
     debug_assert!(count <= 16 && chroma_count <= count);
-    debug_assert!(nodes.iter().all(|&node| (node as usize) < flux.len()));
+    debug_assert!(nodes
+        .iter()
+        .all(|&node| (node.into() as usize) < flux.len()));
     assert_eq!(coefficients.len(), nodes.len() * count);
     const PREFETCH_AHEAD: usize = 16;
     let vector_links = if coefficients.len() >= 16 {
@@ -700,7 +739,7 @@ unsafe fn light_cache_projected_avx2(
     for link in 0..nodes.len() {
         if let Some(&ahead) = nodes.get(link + PREFETCH_AHEAD) {
             _mm_prefetch(
-                flux.as_ptr().wrapping_add(ahead as usize) as *const i8,
+                flux.as_ptr().wrapping_add(ahead.into() as usize) as *const i8,
                 _MM_HINT_T0,
             );
         }
@@ -712,7 +751,7 @@ unsafe fn light_cache_projected_avx2(
         };
         let low = _mm256_cvtph_ps(_mm_loadu_si128(row as *const __m128i));
         let high = _mm256_cvtph_ps(_mm_loadu_si128(row.add(8) as *const __m128i));
-        let node_flux = flux.get_unchecked(*nodes.get_unchecked(link) as usize);
+        let node_flux = flux.get_unchecked((*nodes.get_unchecked(link)).into() as usize);
         let y = _mm256_set1_ps(node_flux.x);
         let co_flux = _mm256_set1_ps(node_flux.y);
         let cg_flux = _mm256_set1_ps(node_flux.z);
@@ -837,7 +876,7 @@ impl Technique for Pic {
                 } else {
                     "links (node, f16 factor, f16 cone, octahedral direction: 12 B)"
                 },
-                bake.link_bytes(),
+                self.link_bytes(),
             ),
             MemoryEntry::new("caches (SH, f32)", self.cache_sh.len() * 4),
             MemoryEntry::new("lightmap cache index", self.cache_of_texel.len() * 4),
@@ -895,7 +934,7 @@ impl Technique for Pic {
                     } else {
                         "runtime projection".into()
                     },
-                    bake.link_bytes() as f64 / bake.link_nodes.len().max(1) as f64
+                    self.link_bytes() as f64 / self.link_count.max(1) as f64
                 ),
             ),
             (
@@ -971,6 +1010,25 @@ mod tests {
                         "{count}/{chroma_count}, {link_count} links: {got} vs {want}"
                     );
                 }
+                // The same links with u16 nodes (small hierarchies) give
+                // the same bits as with u32 nodes.
+                let narrow: Vec<u16> = nodes.iter().map(|&node| node as u16).collect();
+                let mut narrowed = [[0.0f32; 16]; 3];
+                let [luma, co, cg] = &mut narrowed;
+                // SAFETY: checked above.
+                unsafe {
+                    light_cache_projected_avx2(
+                        &coefficients,
+                        &narrow,
+                        &flux,
+                        count,
+                        chroma_count,
+                        &mut luma[..count],
+                        &mut co[..chroma_count],
+                        &mut cg[..chroma_count],
+                    )
+                };
+                assert_eq!(narrowed, fast);
             }
         }
     }
