@@ -285,38 +285,76 @@ fn error_falls_with_links_surfels_and_bands() {
 }
 
 /// Figure 9c of the paper: clusters that merge surfels which cannot see
-/// each other carry the lit room's flux into the unlit one. On the
-/// two-rooms scene, the light on room B's far wall (x = 8.2) must be within
-/// 25 % of the path tracer's with visibility-aware clustering, never
-/// several times it. (The paper's metric measured 0.88 of the reference
-/// here while building against 0.76 for the visibility-aware one: with all
-/// bounces, its leak happens to offset PIC's general shortfall.)
+/// each other carry the lit room's flux into the unlit one. The two-rooms
+/// floor and ceiling run on under the dividing wall, so the paper's metric
+/// merges floor surfels from both sides of it (0.3 m apart, same normal)
+/// and room B's caches near the wall link clusters holding room A's lit
+/// floor. Measured here:
+/// - near the wall in room B (floor and ceiling within 0.8 m of it and the
+///   wall's room-B face, away from the doorway), the paper's metric leaks:
+///   1.80 times the path tracer's light at 32 links, 1.27 times at 128,
+///   against 0.74 and 0.76 for visibility-aware clustering, which stays
+///   below the reference like PIC everywhere;
+/// - on room B's far wall (x = 8.2, the measure) visibility-aware
+///   clustering is within 25 % of the path tracer at the default 128 links
+///   (0.75; 0.58 at 32 links), and neither is several times it. The
+///   paper's metric reads 0.90 there: its leak happens to offset PIC's
+///   general shortfall that far from the wall.
 #[test]
 fn visibility_aware_clustering_stops_leaks_between_rooms() {
     let context = context("two-rooms");
     let receivers = &context.atlas.receivers;
-    let far_wall: Vec<usize> = (0..receivers.len())
-        .filter(|&i| receivers.positions[i].x > 8.1 && receivers.normals[i].x < -0.9)
-        .collect();
-    assert!(far_wall.len() > 50);
-    let mean = |values: &[Rgb]| {
-        far_wall
-            .iter()
+    let select = |keep: &dyn Fn(glam::Vec3, glam::Vec3) -> bool| -> Vec<usize> {
+        (0..receivers.len())
+            .filter(|&i| keep(receivers.positions[i], receivers.normals[i]))
+            .collect()
+    };
+    let far_wall = select(&|position, normal| position.x > 8.1 && normal.x < -0.9);
+    // Room B is x > 4.2; the doorway spans z = 1.5 .. 2.5.
+    let away_from_door = |position: glam::Vec3| position.z < 1.2 || position.z > 2.8;
+    let near_wall = select(&|position, normal| {
+        away_from_door(position)
+            && ((position.x > 4.2 && position.x < 5.0 && normal.y.abs() > 0.9)
+                || (position.x > 4.15 && position.x < 4.3 && normal.x > 0.9))
+    });
+    assert!(far_wall.len() > 50 && near_wall.len() > 200);
+    let mean = |set: &[usize], values: &[Rgb]| {
+        set.iter()
             .map(|&i| luminance(values[i]) as f64)
             .sum::<f64>()
-            / far_wall.len() as f64
+            / set.len() as f64
     };
-    let truth = mean(&reference(&context, 1024));
-    let ratio = |params: &[(&str, &str)]| {
+    let truth = reference(&context, 1024);
+    // (far wall, near wall), each over the path tracer's.
+    let ratios = |params: &[(&str, &str)]| {
         let mut all = vec![("lightmap_caches", "0"), ("surfels", "16384")];
         all.extend_from_slice(params);
-        mean(pic(&context, &all).receiver_irradiance().unwrap()) / truth
+        let technique = pic(&context, &all);
+        let values = technique.receiver_irradiance().unwrap();
+        (
+            mean(&far_wall, values) / mean(&far_wall, &truth),
+            mean(&near_wall, values) / mean(&near_wall, &truth),
+        )
     };
-    let aware = ratio(&[]);
-    let paper = ratio(&[("visibility_weight", "0"), ("leak_refinement", "0")]);
-    println!("far wall / reference: visibility-aware {aware:.3}, paper's metric {paper:.3}");
-    assert!((aware - 1.0).abs() <= 0.25, "{aware}");
-    assert!(paper < 2.0, "{paper}");
+    let paper_metric = [("visibility_weight", "0"), ("leak_refinement", "0")];
+    for links in ["32", "128"] {
+        let (aware_far, aware_near) = ratios(&[("links", links)]);
+        let mut paper_params = vec![("links", links)];
+        paper_params.extend_from_slice(&paper_metric);
+        let (paper_far, paper_near) = ratios(&paper_params);
+        println!(
+            "{links} links, over the reference: far wall visibility-aware {aware_far:.3}, paper's metric {paper_far:.3}; near the wall {aware_near:.3} and {paper_near:.3}"
+        );
+        // No leak: below the reference plus the path tracer's noise
+        // (PIC's clusters average radiosity low, so it sits under 1).
+        assert!(aware_near < 1.05, "{links} links: {aware_near}");
+        // The leak the fix removes: well above the reference.
+        assert!(paper_near > 1.15, "{links} links: {paper_near}");
+        assert!(paper_far < 2.0 && aware_far < 2.0);
+        if links == "128" {
+            assert!((aware_far - 1.0).abs() <= 0.25, "{aware_far}");
+        }
+    }
 }
 
 /// Chroma with fewer bands than luma stays close to full colour (section
