@@ -376,9 +376,16 @@ impl Atlas {
     }
 
     /// [`Atlas::sample`] of a packed lightmap, the four texels decoded and
-    /// weighted together (4-wide on x86-64).
+    /// weighted together (4-wide on x86-64). `texel_value` gives a texel's
+    /// packed value: a plain lightmap indexes itself, a lightmap kept as
+    /// values plus a texel-to-slot map goes through the map.
     #[inline]
-    pub fn sample_packed(&self, lightmap: &[Rgb9e5], triangle: u32, barycentric: Vec2) -> Rgb {
+    pub fn sample_packed(
+        &self,
+        texel_value: impl Fn(usize) -> Rgb9e5,
+        triangle: u32,
+        barycentric: Vec2,
+    ) -> Rgb {
         // The footprint inlines here, so texel indices and weights stay in
         // registers; through `bilinear_texels` (a call returning them in
         // memory) the weights came back as a 16-byte load of four 4-byte
@@ -387,39 +394,10 @@ impl Atlas {
             self.bilinear_footprint(triangle, barycentric);
         relight_core::colour::bilinear_rgb9e5(
             [
-                lightmap[upper_left],
-                lightmap[upper_right],
-                lightmap[lower_left],
-                lightmap[lower_right],
-            ],
-            [
-                (1.0 - fx) * (1.0 - fy),
-                fx * (1.0 - fy),
-                (1.0 - fx) * fy,
-                fx * fy,
-            ],
-        )
-    }
-
-    /// [`Atlas::sample_packed`] of values stored per slot, with `slots`
-    /// naming each texel's slot.
-    #[inline]
-    pub fn sample_packed_slots(
-        &self,
-        slots: &[u32],
-        values: &[Rgb9e5],
-        triangle: u32,
-        barycentric: Vec2,
-    ) -> Rgb {
-        let ([upper_left, upper_right, lower_left, lower_right], fx, fy) =
-            self.bilinear_footprint(triangle, barycentric);
-        let value = |texel: usize| values[slots[texel] as usize];
-        relight_core::colour::bilinear_rgb9e5(
-            [
-                value(upper_left),
-                value(upper_right),
-                value(lower_left),
-                value(lower_right),
+                texel_value(upper_left),
+                texel_value(upper_right),
+                texel_value(lower_left),
+                texel_value(lower_right),
             ],
             [
                 (1.0 - fx) * (1.0 - fy),

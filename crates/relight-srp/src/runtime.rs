@@ -755,9 +755,8 @@ impl Technique for Srp {
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        self.context.atlas.sample_packed_slots(
-            &self.slot_of_texel,
-            &self.irradiance,
+        self.context.atlas.sample_packed(
+            |texel| self.irradiance[self.slot_of_texel[texel] as usize],
             point.triangle,
             point.barycentric,
         )
