@@ -956,6 +956,34 @@ mod tests {
     use super::*;
     use relight_core::sampling::Pcg32;
 
+    /// One projected-kernel call into fresh luma, Co and Cg rows of 16.
+    fn run_projected_kernel<Node: Copy + Into<u32>>(
+        kernel: ProjectedKernel<Node>,
+        coefficients: &[u16],
+        nodes: &[Node],
+        flux: &[Vec3],
+        count: usize,
+        chroma_count: usize,
+    ) -> [[f32; 16]; 3] {
+        let mut rows = [[0.0f32; 16]; 3];
+        let [luma, co, cg] = &mut rows;
+        // SAFETY: callers check `projected_kernel_available`; the test's
+        // nodes all index `flux`.
+        unsafe {
+            kernel(
+                coefficients,
+                nodes,
+                flux,
+                count,
+                chroma_count,
+                &mut luma[..count],
+                &mut co[..chroma_count],
+                &mut cg[..chroma_count],
+            )
+        };
+        rows
+    }
+
     /// The F16C kernel against the scalar loop, for every row length it
     /// serves, with chroma shorter than luma, and link counts whose last
     /// rows take the scalar tail (fewer than 16 halves left) or where no
@@ -975,32 +1003,21 @@ mod tests {
                 let coefficients: Vec<u16> = (0..link_count * count)
                     .map(|_| half::f16::from_f32(4.0 * rng.next_f32() - 2.0).to_bits())
                     .collect();
-                let mut fast = [[0.0f32; 16]; 3];
-                let mut slow = [[0.0f32; 16]; 3];
-                let [luma, co, cg] = &mut fast;
-                // SAFETY: checked above.
-                unsafe {
-                    light_cache_projected_avx2(
-                        &coefficients,
-                        &nodes,
-                        &flux,
-                        count,
-                        chroma_count,
-                        &mut luma[..count],
-                        &mut co[..chroma_count],
-                        &mut cg[..chroma_count],
-                    )
-                };
-                let [luma, co, cg] = &mut slow;
-                light_cache_projected(
+                let fast = run_projected_kernel(
+                    light_cache_projected_avx2,
                     &coefficients,
                     &nodes,
                     &flux,
                     count,
                     chroma_count,
-                    &mut luma[..count],
-                    &mut co[..chroma_count],
-                    &mut cg[..chroma_count],
+                );
+                let slow = run_projected_kernel(
+                    light_cache_projected,
+                    &coefficients,
+                    &nodes,
+                    &flux,
+                    count,
+                    chroma_count,
                 );
                 for (got, want) in fast.iter().flatten().zip(slow.iter().flatten()) {
                     // Same products, summed in another order: f32 rounding of
@@ -1013,21 +1030,14 @@ mod tests {
                 // The same links with u16 nodes (small hierarchies) give
                 // the same bits as with u32 nodes.
                 let narrow: Vec<u16> = nodes.iter().map(|&node| node as u16).collect();
-                let mut narrowed = [[0.0f32; 16]; 3];
-                let [luma, co, cg] = &mut narrowed;
-                // SAFETY: checked above.
-                unsafe {
-                    light_cache_projected_avx2(
-                        &coefficients,
-                        &narrow,
-                        &flux,
-                        count,
-                        chroma_count,
-                        &mut luma[..count],
-                        &mut co[..chroma_count],
-                        &mut cg[..chroma_count],
-                    )
-                };
+                let narrowed = run_projected_kernel(
+                    light_cache_projected_avx2,
+                    &coefficients,
+                    &narrow,
+                    &flux,
+                    count,
+                    chroma_count,
+                );
                 assert_eq!(narrowed, fast);
             }
         }
