@@ -5,9 +5,10 @@
 //! few SH radiance probes through precomputed, compressed transport.
 //!
 //! Data flow. Bake: probes are placed in free space in front of the
-//! surfaces, inside the scene's bounds (candidates at varied heights above
-//! the receivers, farthest-point seeds relaxed by Lloyd iterations so they
-//! spread through the volume, then topped up where receivers see fewer
+//! surfaces, outward-facing ones included (candidates at varied heights
+//! above the receivers, no farther out than half a probe spacing beyond
+//! the scene's bounds, farthest-point seeds relaxed by Lloyd iterations so
+//! they spread through the volume, then topped up where receivers see fewer
 //! than `min_probes` within the cut-off radius r) or read from the scene file's
 //! `[srp] probes = [[x, y, z], ...]`. Every receiver (lightmap texel) gets
 //! its nearby probes and, by progressive Monte Carlo over cosine-weighted

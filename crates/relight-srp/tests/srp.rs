@@ -5,7 +5,9 @@ use relight_core::Rgb;
 use relight_render::metrics::error_norms;
 use relight_render::study::indirect_errors;
 use relight_scene::atlas::TexelDensity;
-use relight_srp::probes::{count_short_receivers, is_inside_geometry};
+use relight_srp::probes::{
+    count_short_receivers, is_inside_geometry, place_probes, PlacementSettings,
+};
 use relight_srp::transport::{aabb_clusters, compress, TransportScratch, TransportSettings};
 use relight_srp::{cluster_transport, SrpBake, SrpKind, SrpParams};
 use relight_technique::{
@@ -64,26 +66,16 @@ fn srp(context: &Arc<SceneContext>, params: &[(&str, &str)]) -> Box<dyn Techniqu
     technique
 }
 
-/// Automatic placement puts no probe inside geometry, and (with the
-/// coverage pass) leaves few receivers short of `min_probes` visible probes;
-/// the count the bake reports is the count a fresh check finds.
+/// Automatic placement puts no probe inside geometry or far outside the
+/// scene, and (with the coverage pass) leaves few receivers short of
+/// `min_probes` visible probes; the count the bake reports is the count a
+/// fresh check finds.
 #[test]
 fn probe_placement_guarantees() {
     let context = context("cornell-box");
     let params = SrpParams::from_scene(&context, &[]).unwrap();
     let bake = SrpBake::build(&context, &params, &NoProgress).unwrap();
     assert!(bake.probes.len() >= params.probe_count as usize);
-    for probe in &bake.probes {
-        assert!(
-            !is_inside_geometry(&context, *probe),
-            "probe {probe} is inside geometry"
-        );
-        let (lo, hi) = context.scene.mesh.bounds();
-        assert!(
-            probe.cmpge(lo).all() && probe.cmple(hi).all(),
-            "probe {probe} is outside the room"
-        );
-    }
     let short = count_short_receivers(
         &context,
         &bake.probes,
@@ -94,12 +86,88 @@ fn probe_placement_guarantees() {
     // The receivers left short are texel centres clamped onto edges where
     // two surfaces meet, whose rays graze the neighbouring surface; 2.7 %
     // on this scene when measured, bounded here at 5 %.
+    assert_placement_covers(
+        &context,
+        &bake.probes,
+        params.probe_count as usize,
+        short,
+        0.05,
+    );
+}
+
+/// `probes` avoid geometry and stay within half a probe spacing of the
+/// scene's bounds, and at most `bound` of the receivers are `short`.
+fn assert_placement_covers(
+    context: &SceneContext,
+    probes: &[Vec3],
+    count: usize,
+    short: usize,
+    bound: f64,
+) {
+    let spacing = (context.scene.mesh.total_area() as f32 / count as f32).sqrt();
+    let (lo, hi) = context.scene.mesh.bounds();
+    let margin = Vec3::splat(0.5 * spacing + 1e-4);
+    for probe in probes {
+        assert!(
+            !is_inside_geometry(context, *probe),
+            "probe {probe} is inside geometry"
+        );
+        assert!(
+            probe.cmpge(lo - margin).all() && probe.cmple(hi + margin).all(),
+            "probe {probe} is far outside the scene"
+        );
+    }
     let fraction = short as f64 / context.atlas.receivers.len() as f64;
     assert!(
-        fraction <= 0.05,
-        "{short} receivers see fewer than {} probes",
-        params.min_probes
+        fraction <= bound,
+        "{short} receivers ({:.1} %) see too few probes",
+        fraction * 100.0
     );
+}
+
+/// Placement on scenes whose surfaces face outward as well as in: the two
+/// rooms' outer walls, and Sponza's roof, outer walls, floor underside and
+/// open courtyard (a third of its area). Probes serve those surfaces from
+/// just outside the scene's bounds; a placement kept inside the bounds left
+/// 26 % of the two rooms' receivers and 28 % of Sponza's (at 160 probes
+/// plus 32 for coverage) short of 3 probes. Measured now: 1.4 % (64
+/// probes) and 3.4 % (128 plus 32, the benchmark's 160), bounded at 5 %.
+/// Sponza runs where ../shared/scenes is beside the repository.
+#[test]
+fn placement_covers_outward_facing_surfaces() {
+    let sponza =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/scenes/sponza/scene.toml");
+    let mut scenes = vec![(context("two-rooms"), 32usize)];
+    if sponza.exists() {
+        scenes.push((
+            context_of(relight_scene::load_scene(&sponza).expect("Sponza loads")),
+            128,
+        ));
+    }
+    for (context, count) in scenes {
+        let min_probes = 3;
+        let placement = place_probes(
+            &context,
+            PlacementSettings {
+                count,
+                radius: 0.0,
+                radius_factor: 2.0,
+                min_probes,
+                max_added: 32,
+            },
+        );
+        let short =
+            count_short_receivers(&context, &placement.probes, placement.radius, min_probes);
+        assert_eq!(short, placement.receivers_short_of_probes);
+        println!(
+            "{} probes ({} added), radius {:.2}: {short} of {} receivers short of {min_probes}",
+            placement.probes.len(),
+            placement.added_for_coverage,
+            placement.radius,
+            context.atlas.receivers.len()
+        );
+        assert_placement_covers(&context, &placement.probes, count, short, 0.05);
+    }
 }
 
 /// Probes from the scene file replace automatic placement.
@@ -266,8 +334,8 @@ fn lightmap_error(reference: &[Rgb], context: &Arc<SceneContext>, params: &[(&st
 }
 
 /// The thesis's Figure 6.7 trend, and the same for probe count: error falls
-/// as SH order and probes grow (measured 23.7, 11.0, 9.1 % for orders 1, 3,
-/// 7 and 20.7, 9.6, 9.2 % for 4, 16, 32 probes at 256 samples).
+/// as SH order and probes grow (measured 25.6, 10.8, 9.4 % for orders 1, 3,
+/// 7 and 21.9, 9.7, 9.4 % for 4, 16, 32 probes at 256 samples).
 #[test]
 fn error_falls_with_order_and_probe_count() {
     let context = context("cornell-box-point");
