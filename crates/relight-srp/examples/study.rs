@@ -12,6 +12,7 @@ use glam::Vec3;
 use relight_core::{luminance, Rgb};
 use relight_render::metrics::error_norms;
 use relight_render::study::run_study;
+use relight_srp::probes::receiver_sees_probe;
 use relight_srp::{SrpBake, SrpKind, BAKE_PARAMETERS};
 use relight_technique::SceneContext;
 
@@ -96,6 +97,9 @@ fn detail(context: &SceneContext, bake: &[u8], values: &[Rgb], reference: &[Rgb]
         }
     }
     let decoded = SrpBake::decode(bake).expect("decode");
+    if std::env::var_os("SRP_SPLIT").is_some() {
+        split_by_visible_probes(context, &decoded, values, reference);
+    }
     let stats = &decoded.stats;
     println!(
             "    {} probes ({} added), radius {:.3}, {} receivers short of {}, {:.2} nearby, {:.1} % valid samples, {:.4} energy kept, {} clusters, {} probe-visible texels",
@@ -114,4 +118,50 @@ fn detail(context: &SceneContext, bake: &[u8], values: &[Rgb], reference: &[Rgb]
 
 fn main() {
     run_study(&SrpKind, &BAKE_PARAMETERS, &detail);
+}
+
+/// With `SRP_SPLIT=1`: the squared error split by how many probes within
+/// the radius each receiver sees (0, 1 to 2, 3 or more), as each group's
+/// share of the total and its own relRMSE.
+fn split_by_visible_probes(
+    context: &SceneContext,
+    bake: &SrpBake,
+    values: &[Rgb],
+    reference: &[Rgb],
+) {
+    use rayon::prelude::*;
+    let receivers = &context.atlas.receivers;
+    let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+    let groups: Vec<usize> = (0..receivers.len())
+        .into_par_iter()
+        .map(|index| {
+            let (position, normal) = (receivers.positions[index], receivers.normals[index]);
+            let seen = bake
+                .probes
+                .iter()
+                .filter(|probe| {
+                    probe.distance(position) < bake.radius
+                        && receiver_sees_probe(context, position, normal, **probe, epsilon)
+                })
+                .count();
+            seen.min(3).div_ceil(2)
+        })
+        .collect();
+    let mut squared_error = [0.0f64; 3];
+    let mut squared_reference = [0.0f64; 3];
+    let mut counts = [0usize; 3];
+    for ((group, value), truth) in groups.iter().zip(values).zip(reference) {
+        squared_error[*group] += (*value - *truth).length_squared() as f64;
+        squared_reference[*group] += truth.length_squared() as f64;
+        counts[*group] += 1;
+    }
+    let total: f64 = squared_error.iter().sum();
+    for (group, name) in ["0 probes", "1-2 probes", "3+ probes"].iter().enumerate() {
+        println!(
+            "    {name}: {} receivers, {:.1} % of the squared error, relRMSE {:.1} %",
+            counts[group],
+            100.0 * squared_error[group] / total,
+            100.0 * (squared_error[group] / squared_reference[group].max(1e-30)).sqrt()
+        );
+    }
 }
