@@ -9,7 +9,9 @@
 
 use glam::Vec3;
 use relight_scene::atlas::TexelDensity;
-use relight_srp::probes::{place_probes, receiver_sees_probe, PlacementSettings};
+use relight_srp::probes::{
+    place_probes, receiver_sees_probe, receivers_seeing_geometry, PlacementSettings,
+};
 use relight_technique::{ContextSettings, SceneContext};
 use relight_trace::Ray;
 
@@ -38,18 +40,24 @@ fn main() {
         },
     );
     println!(
-        "{} probes ({} added), radius {:.3}, {} of {} receivers short of {min_probes}, placement {:.1} s",
+        "{} probes ({} added), radius {:.3}, {} of {} receivers short of {min_probes} ({} see only the environment), placement {:.1} s",
         placement.probes.len(),
         placement.added_for_coverage,
         placement.radius,
         placement.receivers_short_of_probes,
         context.atlas.receivers.len(),
+        placement.open_receivers,
         start.elapsed().as_secs_f32()
     );
     let (low, high) = context.scene.mesh.bounds();
     println!(
-        "bounds {low} .. {high}, area {:.0}",
-        context.scene.mesh.total_area()
+        "bounds {low} .. {high}, area {:.0}; {} probes outside the bounds",
+        context.scene.mesh.total_area(),
+        placement
+            .probes
+            .iter()
+            .filter(|probe| !(probe.cmpge(low).all() && probe.cmple(high).all()))
+            .count()
     );
     let receivers = &context.atlas.receivers;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
@@ -71,7 +79,11 @@ fn main() {
     };
     let mut maps = vec![[[0usize; 2]; COLUMNS * ROWS]; 4];
     let level = |y: f32| ((((y - low.y) / (high.y - low.y)) * 4.0) as usize).min(3);
-    for index in 0..receivers.len() {
+    let sees_geometry = receivers_seeing_geometry(&context);
+    for (index, &sees) in sees_geometry.iter().enumerate() {
+        if !sees {
+            continue;
+        }
         let position = receivers.positions[index];
         let normal = receivers.normals[index];
         let mut in_reach = 0;

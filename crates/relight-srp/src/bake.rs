@@ -14,7 +14,7 @@ use relight_trace::Ray;
 use std::collections::HashMap;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 3;
+const PAYLOAD_VERSION: u32 = 4;
 
 /// A probe sample that escapes the scene.
 pub const ESCAPED: u32 = u32::MAX;
@@ -28,8 +28,11 @@ pub struct BakeStats {
     pub placed_probes: u32,
     pub added_for_coverage: u32,
     pub min_probes: u32,
+    /// Receivers that see geometry but fewer than `min_probes` probes.
     pub receivers_short_of_probes: u32,
     pub probes_inside_geometry: u32,
+    /// Receivers that see only the environment and need no probe.
+    pub open_receivers: u32,
     /// Mean number of nearby probes per receiver.
     pub mean_nearby: f32,
     /// Fraction of primary samples some probe could stand in for.
@@ -267,6 +270,7 @@ impl SrpBake {
             );
             stats.added_for_coverage = placement.added_for_coverage as u32;
             stats.receivers_short_of_probes = placement.receivers_short_of_probes as u32;
+            stats.open_receivers = placement.open_receivers as u32;
             (placement.probes, placement.radius)
         } else {
             let probes: Vec<Vec3> = params.probes.iter().map(|p| Vec3::from_array(*p)).collect();
@@ -290,6 +294,10 @@ impl SrpBake {
             stats.receivers_short_of_probes =
                 probes::count_short_receivers(context, &probes, radius, params.min_probes as usize)
                     as u32;
+            stats.open_receivers = probes::receivers_seeing_geometry(context)
+                .iter()
+                .filter(|&&sees| !sees)
+                .count() as u32;
             (probes, radius)
         };
         stats.placed_probes = probes.len() as u32;
@@ -415,6 +423,7 @@ impl SrpBake {
             stats.min_probes,
             stats.receivers_short_of_probes,
             stats.probes_inside_geometry,
+            stats.open_receivers,
         ] {
             writer.u32(value);
         }
@@ -447,7 +456,7 @@ impl SrpBake {
         let sample_targets = reader.u32s()?;
         let visible_receivers = reader.u32s()?;
         let clusters = ClusterSet::read(&mut reader, rank)?;
-        let mut counts = [0u32; 5];
+        let mut counts = [0u32; 6];
         for count in &mut counts {
             *count = reader.u32()?;
         }
@@ -474,6 +483,7 @@ impl SrpBake {
                 min_probes: counts[2],
                 receivers_short_of_probes: counts[3],
                 probes_inside_geometry: counts[4],
+                open_receivers: counts[5],
                 mean_nearby: floats.first().copied().unwrap_or(0.0),
                 valid_sample_fraction: floats.get(1).copied().unwrap_or(0.0),
                 captured_energy: floats.get(2).copied().unwrap_or(0.0),

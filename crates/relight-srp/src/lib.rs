@@ -5,11 +5,13 @@
 //! few SH radiance probes through precomputed, compressed transport.
 //!
 //! Data flow. Bake: probes are placed in free space in front of the
-//! surfaces, outward-facing ones included (candidates at varied heights
-//! above the receivers, no farther out than half a probe spacing beyond
-//! the scene's bounds, farthest-point seeds relaxed by Lloyd iterations so
-//! they spread through the volume, then topped up where receivers see fewer
-//! than `min_probes` within the cut-off radius r) or read from the scene file's
+//! surfaces that see any geometry, outward-facing ones included (candidates
+//! at varied heights above those receivers, no farther out than half a
+//! probe spacing beyond the scene's bounds, farthest-point seeds relaxed by
+//! Lloyd iterations so they spread through the volume, then topped up where
+//! receivers see fewer than `min_probes` within the cut-off radius r;
+//! receivers that see only the environment have no indirect light to
+//! reconstruct and need none) or read from the scene file's
 //! `[srp] probes = [[x, y, z], ...]`. Every receiver (lightmap texel) gets
 //! its nearby probes and, by progressive Monte Carlo over cosine-weighted
 //! rays from its texel, the transport coefficients alpha_ij of equation
@@ -42,7 +44,7 @@
 //! | `probes` | `[]` | explicit probe positions `[[x, y, z], ...]`; replaces automatic placement |
 //! | `radius` | 0 | cut-off radius r in metres; 0 = `radius_factor` x the probes' covering distance |
 //! | `radius_factor` | 2 | see `radius` |
-//! | `min_probes` | 3 | receivers should see at least this many probes within r; placement adds probes where they do not |
+//! | `min_probes` | 3 | receivers that see geometry should see at least this many probes within r; placement adds probes where they do not |
 //! | `max_added_probes` | 32 | probes the coverage pass may add |
 //! | `max_nearby` | 8 | probes per receiver (closest visible first) |
 //! | `samples` | 1024 | transport samples per receiver (the thesis: 4096) |
@@ -282,12 +284,13 @@ impl TechniqueKind for SrpKind {
         let params = SrpParams::from_scene(context, params)?;
         let bake = SrpBake::build(context, &params, progress)?;
         tracing::info!(
-            "srp bake: {} probes ({} added for coverage), radius {:.3} m, {} receivers short of {} probes, {} clusters, {:.1} % of the transport's energy kept",
+            "srp bake: {} probes ({} added for coverage), radius {:.3} m, {} receivers short of {} probes ({} see only the environment), {} clusters, {:.1} % of the transport's energy kept",
             bake.probes.len(),
             bake.stats.added_for_coverage,
             bake.radius,
             bake.stats.receivers_short_of_probes,
             bake.stats.min_probes,
+            bake.stats.open_receivers,
             bake.clusters.cluster_count(),
             bake.stats.captured_energy * 100.0
         );

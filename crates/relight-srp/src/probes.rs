@@ -2,15 +2,17 @@
 //! farthest-point sampling, then topped up where receivers see too few
 //! probes within the cut-off radius.
 //!
-//! Surfaces that face out of the scene (a roof, outer walls, the underside
-//! of a floor slab; a third of Sponza's area) get probes too, from just
-//! outside its bounds: they hold lightmap texels like any other, and a
-//! placement kept inside the bounds left 28 % of Sponza's receivers short of
-//! three probes (see the test `placement_covers_outward_facing_surfaces`).
+//! Receivers whose hemisphere holds nothing but the environment (the
+//! outside of a closed building under an empty sky, a third of Sponza's
+//! texels) need no probe and are left out. Surfaces that face out of the
+//! scene but see some of it (a roof beside a higher roof) get probes from
+//! just outside its bounds. A placement kept inside the bounds left 28 % of
+//! Sponza's receivers short of three probes (see the test
+//! `placement_covers_outward_facing_surfaces`).
 
 use glam::Vec3;
 use rayon::prelude::*;
-use relight_core::sampling::radical_inverse;
+use relight_core::sampling::{cosine_hemisphere_around, radical_inverse};
 use relight_scene::atlas::Receivers;
 use relight_technique::SceneContext;
 use relight_trace::Ray;
@@ -22,8 +24,12 @@ pub struct Placement {
     pub radius: f32,
     /// Probes added by the coverage pass on top of the requested count.
     pub added_for_coverage: usize,
-    /// Receivers that see fewer than `min_probes` probes within the radius.
+    /// Receivers that see geometry and fewer than `min_probes` probes
+    /// within the radius.
     pub receivers_short_of_probes: usize,
+    /// Receivers whose hemisphere holds nothing but the environment (see
+    /// [`receivers_seeing_geometry`]): they need no probe.
+    pub open_receivers: usize,
 }
 
 /// Re-exported for the probe placement tests.
@@ -253,6 +259,52 @@ fn visible_counts(context: &SceneContext, probes: &[Vec3], radius: f32) -> Vec<u
         .collect()
 }
 
+/// Cosine-weighted test directions per receiver for
+/// [`receivers_seeing_geometry`], on a stratified grid.
+const OPENNESS_RAYS_PER_SIDE: u32 = 4;
+
+/// Which receivers see a lit side of any surface over their hemisphere:
+/// of `OPENNESS_RAYS_PER_SIDE`^2 stratified cosine-weighted rays, at least
+/// one hits a front face. A receiver that sees only the environment, or
+/// only back faces (a face buried inside another solid), has no indirect
+/// light to reconstruct: relight counts the environment's light as direct,
+/// back faces hold no light, and a transport sample that escapes or hits a
+/// back face carries none, so its transport is zero whichever probes it
+/// sees. The outside of a closed building under an empty sky is such a
+/// surface; probes placed for it would be wasted.
+pub fn receivers_seeing_geometry(context: &SceneContext) -> Vec<bool> {
+    let receivers = &context.atlas.receivers;
+    let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+    let side = OPENNESS_RAYS_PER_SIDE;
+    (0..receivers.len())
+        .into_par_iter()
+        .map(|index| {
+            let normal = receivers.normals[index];
+            let origin = receivers.positions[index] + normal * epsilon;
+            (0..side * side).any(|cell| {
+                let uv = glam::Vec2::new(
+                    ((cell % side) as f32 + 0.5) / side as f32,
+                    ((cell / side) as f32 + 0.5) / side as f32,
+                );
+                let direction = cosine_hemisphere_around(normal, uv);
+                let ray = Ray {
+                    origin,
+                    direction,
+                    t_max: f32::INFINITY,
+                };
+                context.bvh.intersect(&ray).is_some_and(|hit| {
+                    context
+                        .scene
+                        .mesh
+                        .geometric_normal(hit.triangle as usize)
+                        .dot(direction)
+                        < 0.0
+                })
+            })
+        })
+        .collect()
+}
+
 /// Settings of automatic placement.
 #[derive(Clone, Copy, Debug)]
 pub struct PlacementSettings {
@@ -268,8 +320,16 @@ pub struct PlacementSettings {
 /// Automatic placement (see the module comment).
 pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Placement {
     let receivers = &context.atlas.receivers;
-    let total_area = context.scene.mesh.total_area() as f32;
-    let spacing = (total_area / settings.count.max(1) as f32).sqrt();
+    let sees_geometry = receivers_seeing_geometry(context);
+    // Receivers are even over area, so the ones that need probes stand for
+    // their share of it; were none to, placement falls back to all.
+    let mut needy: Vec<usize> = (0..receivers.len()).filter(|&i| sees_geometry[i]).collect();
+    if needy.is_empty() {
+        needy = (0..receivers.len()).collect();
+    }
+    let needy_area =
+        context.scene.mesh.total_area() as f32 * needy.len() as f32 / receivers.len().max(1) as f32;
+    let spacing = (needy_area / settings.count.max(1) as f32).sqrt();
     let height = 0.5 * spacing;
     // Candidates above receivers picked by a Halton sequence (even over the
     // lightmap, which is even over area), each at a height between a fifth
@@ -280,13 +340,19 @@ pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Plac
     // (Cornell box lightmap error 12.2 % for a shell, 7.7 % for a 3 x 3 x 3
     // grid through the room).
     let room = room_around(context, 0.5 * spacing);
+    // The sequence runs over all receivers and skips those that need no
+    // probe, so a scene with few of them keeps the candidates it had.
     let candidate_count = (settings.count * 16).min(receivers.len());
-    let picks: Vec<usize> = (0..candidate_count as u64)
+    let mut picks: Vec<usize> = (0..candidate_count as u64)
         .map(|index| {
             ((radical_inverse(2, index + 1) * receivers.len() as f64) as usize)
                 .min(receivers.len() - 1)
         })
+        .filter(|&index| sees_geometry[index])
         .collect();
+    if picks.is_empty() {
+        picks = needy.iter().copied().take(candidate_count).collect();
+    }
     let candidates: Vec<Vec3> = picks
         .par_iter()
         .enumerate()
@@ -316,18 +382,25 @@ pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Plac
     } else {
         (settings.radius_factor * covering).max(1e-3)
     };
-    let (added_for_coverage, receivers_short_of_probes) =
-        cover_receivers(context, &mut probes, radius, height, settings);
+    let (added_for_coverage, receivers_short_of_probes) = cover_receivers(
+        context,
+        &sees_geometry,
+        &mut probes,
+        radius,
+        height,
+        settings,
+    );
     Placement {
         probes,
         radius,
         added_for_coverage,
         receivers_short_of_probes,
+        open_receivers: sees_geometry.iter().filter(|&&sees| !sees).count(),
     }
 }
 
-/// Receivers with fewer than `min_probes` visible probes within `radius`
-/// for the given probe set.
+/// Receivers that see geometry and fewer than `min_probes` visible probes
+/// within `radius` for the given probe set.
 pub fn count_short_receivers(
     context: &SceneContext,
     probes: &[Vec3],
@@ -336,7 +409,8 @@ pub fn count_short_receivers(
 ) -> usize {
     visible_counts(context, probes, radius)
         .into_iter()
-        .filter(|&count| count < min_probes)
+        .zip(receivers_seeing_geometry(context))
+        .filter(|&(count, sees_geometry)| sees_geometry && count < min_probes)
         .count()
 }
 
@@ -351,6 +425,7 @@ const COVERAGE_ROUNDS: usize = 12;
 /// added, receivers still short).
 fn cover_receivers(
     context: &SceneContext,
+    sees_geometry: &[bool],
     probes: &mut Vec<Vec3>,
     radius: f32,
     height: f32,
@@ -363,7 +438,7 @@ fn cover_receivers(
     let room = room_around(context, height);
     for _round in 0..COVERAGE_ROUNDS {
         let short: Vec<usize> = (0..receivers.len())
-            .filter(|&index| counts[index] < settings.min_probes)
+            .filter(|&index| sees_geometry[index] && counts[index] < settings.min_probes)
             .collect();
         if short.is_empty() || added >= settings.max_added {
             return (added, short.len());
@@ -436,7 +511,8 @@ fn cover_receivers(
     }
     let short = counts
         .iter()
-        .filter(|&&count| count < settings.min_probes)
+        .zip(sees_geometry)
+        .filter(|&(&count, &sees)| sees && count < settings.min_probes)
         .count();
     (added, short)
 }

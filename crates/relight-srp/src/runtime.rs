@@ -827,11 +827,13 @@ impl Technique for Srp {
             (
                 "srp coverage",
                 format!(
-                    "radius {:.3} m; {} of {} receivers see fewer than {} probes; {:.2} probes per receiver",
+                    "radius {:.3} m; {} of the {} receivers that see geometry see fewer than {} probes \
+                     ({} see only the environment and need none); {:.2} probes per receiver",
                     bake.radius,
                     stats.receivers_short_of_probes,
-                    bake.receiver_count,
+                    bake.receiver_count - stats.open_receivers as usize,
                     stats.min_probes,
+                    stats.open_receivers,
                     stats.mean_nearby
                 ),
             ),
