@@ -12,7 +12,7 @@ use glam::Vec3;
 use relight_core::{luminance, Rgb};
 use relight_render::metrics::error_norms;
 use relight_render::study::run_study;
-use relight_srp::probes::receiver_sees_probe;
+use relight_srp::probes::{openness_directions, receiver_sees_probe, receivers_seeing_geometry};
 use relight_srp::{SrpBake, SrpKind, BAKE_PARAMETERS};
 use relight_technique::SceneContext;
 
@@ -122,7 +122,9 @@ fn main() {
 
 /// With `SRP_SPLIT=1`: the squared error split by how many probes within
 /// the radius each receiver sees (0, 1 to 2, 3 or more), as each group's
-/// share of the total and its own relRMSE.
+/// share of the total and its own relRMSE, and the receivers placement
+/// leaves out (seeing only sky, or only back faces) with their share and
+/// mean reference light, which should be nil.
 fn split_by_visible_probes(
     context: &SceneContext,
     bake: &SrpBake,
@@ -156,6 +158,36 @@ fn split_by_visible_probes(
         counts[*group] += 1;
     }
     let total: f64 = squared_error.iter().sum();
+    // Receivers that need no probe, by why: every test ray escapes, or some
+    // hit only back faces.
+    let sees_geometry = receivers_seeing_geometry(context);
+    let mut open = [(0usize, 0.0f64, 0.0f64); 2];
+    for index in 0..receivers.len() {
+        if sees_geometry[index] {
+            continue;
+        }
+        let normal = receivers.normals[index];
+        let origin = receivers.positions[index] + normal * epsilon;
+        let hits_back = openness_directions(normal).any(|direction| {
+            let ray = relight_trace::Ray {
+                origin,
+                direction,
+                t_max: f32::INFINITY,
+            };
+            context.bvh.occluded(&ray)
+        });
+        let slot = &mut open[usize::from(hits_back)];
+        slot.0 += 1;
+        slot.1 += (values[index] - reference[index]).length_squared() as f64;
+        slot.2 += luminance(reference[index]) as f64;
+    }
+    for (name, (count, error, light)) in ["sky only", "back faces"].iter().zip(open) {
+        println!(
+            "    open ({name}): {count} receivers, {:.1} % of the squared error, mean reference luminance {:.4}",
+            100.0 * error / total,
+            light / count.max(1) as f64
+        );
+    }
     for (group, name) in ["0 probes", "1-2 probes", "3+ probes"].iter().enumerate() {
         println!(
             "    {name}: {} receivers, {:.1} % of the squared error, relRMSE {:.1} %",

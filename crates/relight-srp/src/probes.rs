@@ -275,18 +275,12 @@ const OPENNESS_RAYS_PER_SIDE: u32 = 4;
 pub fn receivers_seeing_geometry(context: &SceneContext) -> Vec<bool> {
     let receivers = &context.atlas.receivers;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
-    let side = OPENNESS_RAYS_PER_SIDE;
     (0..receivers.len())
         .into_par_iter()
         .map(|index| {
             let normal = receivers.normals[index];
             let origin = receivers.positions[index] + normal * epsilon;
-            (0..side * side).any(|cell| {
-                let uv = glam::Vec2::new(
-                    ((cell % side) as f32 + 0.5) / side as f32,
-                    ((cell / side) as f32 + 0.5) / side as f32,
-                );
-                let direction = cosine_hemisphere_around(normal, uv);
+            openness_directions(normal).any(|direction| {
                 let ray = Ray {
                     origin,
                     direction,
@@ -303,6 +297,18 @@ pub fn receivers_seeing_geometry(context: &SceneContext) -> Vec<bool> {
             })
         })
         .collect()
+}
+
+/// The test directions of [`receivers_seeing_geometry`] around `normal`.
+pub fn openness_directions(normal: Vec3) -> impl Iterator<Item = Vec3> {
+    let side = OPENNESS_RAYS_PER_SIDE;
+    (0..side * side).map(move |cell| {
+        let uv = glam::Vec2::new(
+            ((cell % side) as f32 + 0.5) / side as f32,
+            ((cell / side) as f32 + 0.5) / side as f32,
+        );
+        cosine_hemisphere_around(normal, uv)
+    })
 }
 
 /// Settings of automatic placement.
