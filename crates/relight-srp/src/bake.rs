@@ -291,13 +291,10 @@ impl SrpBake {
                     .reduce(|| 0.0, f32::max);
                 (params.radius_factor * covering).max(1e-3)
             };
-            stats.receivers_short_of_probes =
-                probes::count_short_receivers(context, &probes, radius, params.min_probes as usize)
-                    as u32;
-            stats.open_receivers = probes::receivers_seeing_geometry(context)
-                .iter()
-                .filter(|&&sees| !sees)
-                .count() as u32;
+            let (short, open) =
+                probes::coverage_of(context, &probes, radius, params.min_probes as usize);
+            stats.receivers_short_of_probes = short as u32;
+            stats.open_receivers = open as u32;
             (probes, radius)
         };
         stats.placed_probes = probes.len() as u32;

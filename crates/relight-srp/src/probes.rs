@@ -413,11 +413,26 @@ pub fn count_short_receivers(
     radius: f32,
     min_probes: usize,
 ) -> usize {
-    visible_counts(context, probes, radius)
+    coverage_of(context, probes, radius, min_probes).0
+}
+
+/// For the given probe set: the receivers that see geometry and fewer than
+/// `min_probes` visible probes within `radius`, and the receivers that see
+/// no lit surface and need none.
+pub fn coverage_of(
+    context: &SceneContext,
+    probes: &[Vec3],
+    radius: f32,
+    min_probes: usize,
+) -> (usize, usize) {
+    let sees_geometry = receivers_seeing_geometry(context);
+    let short = visible_counts(context, probes, radius)
         .into_iter()
-        .zip(receivers_seeing_geometry(context))
-        .filter(|&(count, sees_geometry)| sees_geometry && count < min_probes)
-        .count()
+        .zip(&sees_geometry)
+        .filter(|&(count, &sees)| sees && count < min_probes)
+        .count();
+    let open = sees_geometry.iter().filter(|&&sees| !sees).count();
+    (short, open)
 }
 
 /// Candidate positions and short receivers judging them, per coverage
