@@ -12,7 +12,7 @@ use glam::Vec3;
 use relight_core::{luminance, Rgb};
 use relight_render::metrics::error_norms;
 use relight_render::study::run_study;
-use relight_srp::probes::{openness_directions, receiver_sees_probe, receivers_seeing_geometry};
+use relight_srp::probes::{openness_directions, receivers_seeing_geometry, visible_counts};
 use relight_srp::{SrpBake, SrpKind, BAKE_PARAMETERS};
 use relight_technique::SceneContext;
 
@@ -131,23 +131,11 @@ fn split_by_visible_probes(
     values: &[Rgb],
     reference: &[Rgb],
 ) {
-    use rayon::prelude::*;
     let receivers = &context.atlas.receivers;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
-    let groups: Vec<usize> = (0..receivers.len())
-        .into_par_iter()
-        .map(|index| {
-            let (position, normal) = (receivers.positions[index], receivers.normals[index]);
-            let seen = bake
-                .probes
-                .iter()
-                .filter(|probe| {
-                    probe.distance(position) < bake.radius
-                        && receiver_sees_probe(context, position, normal, **probe, epsilon)
-                })
-                .count();
-            seen.min(3).div_ceil(2)
-        })
+    let groups: Vec<usize> = visible_counts(context, &bake.probes, bake.radius)
+        .into_iter()
+        .map(|seen| seen.min(3).div_ceil(2))
         .collect();
     let mut squared_error = [0.0f64; 3];
     let mut squared_reference = [0.0f64; 3];

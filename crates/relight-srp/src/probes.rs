@@ -244,7 +244,7 @@ pub fn nearby_probes(
 }
 
 /// How many probes within `radius` each receiver sees.
-fn visible_counts(context: &SceneContext, probes: &[Vec3], radius: f32) -> Vec<usize> {
+pub fn visible_counts(context: &SceneContext, probes: &[Vec3], radius: f32) -> Vec<usize> {
     let receivers = &context.atlas.receivers;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
     (0..receivers.len())
@@ -327,14 +327,16 @@ pub struct PlacementSettings {
 pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Placement {
     let receivers = &context.atlas.receivers;
     let sees_geometry = receivers_seeing_geometry(context);
+    let open_receivers = sees_geometry.iter().filter(|&&sees| !sees).count();
     // Receivers are even over area, so the ones that need probes stand for
-    // their share of it; were none to, placement falls back to all.
-    let mut needy: Vec<usize> = (0..receivers.len()).filter(|&i| sees_geometry[i]).collect();
-    if needy.is_empty() {
-        needy = (0..receivers.len()).collect();
-    }
+    // their share of it; were none to, placement goes on as if all did.
+    let needing = match receivers.len() - open_receivers {
+        0 => receivers.len(),
+        needing => needing,
+    };
+    let needs_probes = |index: usize| sees_geometry[index] || needing == receivers.len();
     let needy_area =
-        context.scene.mesh.total_area() as f32 * needy.len() as f32 / receivers.len().max(1) as f32;
+        context.scene.mesh.total_area() as f32 * needing as f32 / receivers.len().max(1) as f32;
     let spacing = (needy_area / settings.count.max(1) as f32).sqrt();
     let height = 0.5 * spacing;
     // Candidates above receivers picked by a Halton sequence (even over the
@@ -354,10 +356,13 @@ pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Plac
             ((radical_inverse(2, index + 1) * receivers.len() as f64) as usize)
                 .min(receivers.len() - 1)
         })
-        .filter(|&index| sees_geometry[index])
+        .filter(|&index| needs_probes(index))
         .collect();
     if picks.is_empty() {
-        picks = needy.iter().copied().take(candidate_count).collect();
+        picks = (0..receivers.len())
+            .filter(|&index| needs_probes(index))
+            .take(candidate_count)
+            .collect();
     }
     let candidates: Vec<Vec3> = picks
         .par_iter()
@@ -401,7 +406,7 @@ pub fn place_probes(context: &SceneContext, settings: PlacementSettings) -> Plac
         radius,
         added_for_coverage,
         receivers_short_of_probes,
-        open_receivers: sees_geometry.iter().filter(|&&sees| !sees).count(),
+        open_receivers,
     }
 }
 
@@ -426,13 +431,18 @@ pub fn coverage_of(
     min_probes: usize,
 ) -> (usize, usize) {
     let sees_geometry = receivers_seeing_geometry(context);
-    let short = visible_counts(context, probes, radius)
-        .into_iter()
-        .zip(&sees_geometry)
-        .filter(|&(count, &sees)| sees && count < min_probes)
-        .count();
+    let counts = visible_counts(context, probes, radius);
+    let short = short_receivers(&counts, &sees_geometry, min_probes).len();
     let open = sees_geometry.iter().filter(|&&sees| !sees).count();
     (short, open)
+}
+
+/// The receivers that see geometry but fewer than `min_probes` of the
+/// probes `counts` counted.
+fn short_receivers(counts: &[usize], sees_geometry: &[bool], min_probes: usize) -> Vec<usize> {
+    (0..counts.len())
+        .filter(|&index| sees_geometry[index] && counts[index] < min_probes)
+        .collect()
 }
 
 /// Candidate positions and short receivers judging them, per coverage
@@ -458,9 +468,7 @@ fn cover_receivers(
     let mut counts = visible_counts(context, probes, radius);
     let room = room_around(context, height);
     for _round in 0..COVERAGE_ROUNDS {
-        let short: Vec<usize> = (0..receivers.len())
-            .filter(|&index| sees_geometry[index] && counts[index] < settings.min_probes)
-            .collect();
+        let short = short_receivers(&counts, sees_geometry, settings.min_probes);
         if short.is_empty() || added >= settings.max_added {
             return (added, short.len());
         }
@@ -530,11 +538,7 @@ fn cover_receivers(
         }
         probes.extend(batch);
     }
-    let short = counts
-        .iter()
-        .zip(sees_geometry)
-        .filter(|&(&count, &sees)| sees && count < settings.min_probes)
-        .count();
+    let short = short_receivers(&counts, sees_geometry, settings.min_probes).len();
     (added, short)
 }
 
