@@ -306,6 +306,21 @@ intensity = [3.0, 2.8, 2.5]
 radiance = [0.0, 0.0, 0.0]
 """
     write("two-rooms", obj, "Two rooms joined by a doorway, metres.", materials, scene)
+    # The same rooms seen from inside the unlit one: its walls, floor and
+    # ceiling fill the view, so leaks and blotches there dominate the image.
+    unlit = scene.split("[camera]")[0].replace(
+        "so its far wall (x = 8.2) measures light leaks.",
+        "so its far wall (x = 8.2) measures light leaks. The camera stands in\n# room B's far corner and looks back at the doorway wall.",
+    )
+    unlit += """[camera]
+eye = [7.9, 1.6, 3.7]
+target = [4.2, 0.9, 0.6]
+up = [0.0, 1.0, 0.0]
+fov_y = 60.0
+resolution = [320, 240]
+"""
+    unlit += "\n[[lights]]" + scene.split("[[lights]]")[1]
+    (HERE / "two-rooms" / "scene-unlit-room.toml").write_text(unlit)
 
 
 def moving_box():

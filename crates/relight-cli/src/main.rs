@@ -16,6 +16,7 @@ macro_rules! say {
 
 mod bench;
 mod compare;
+mod converge;
 mod progress;
 mod techniques;
 
@@ -168,6 +169,18 @@ enum Command {
         settings: compare::CompareSettings,
         #[arg(short, long)]
         output: PathBuf,
+    },
+    /// Sweep a technique's parameters and measure each setting against the
+    /// path tracer: lightmap (all and camera-visible receivers), image per
+    /// pixel and over 8x8 tiles, total light, and the error by receiver class.
+    Converge {
+        scene: PathBuf,
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        #[command(flatten)]
+        settings: converge::ConvergeSettings,
     },
     /// Compare every technique on every shipped scene into out/.
     Demo {
@@ -507,6 +520,17 @@ fn run(cli: Cli) -> Result<()> {
             let context = load_context(&scene, &options, quiet)?;
             let table = compare::run(&context, &scene, &techniques, &settings, &output, quiet)?;
             say!("{table}");
+            Ok(())
+        }
+        Command::Converge {
+            scene,
+            technique,
+            options,
+            settings,
+        } => {
+            let context = load_context(&scene, &options, quiet)?;
+            let report = converge::run(&context, &scene, &technique, &settings, quiet)?;
+            say!("{report}");
             Ok(())
         }
         Command::Demo {

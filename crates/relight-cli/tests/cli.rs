@@ -236,3 +236,77 @@ fn closed_stdout_is_not_an_error() {
         String::from_utf8_lossy(&output.stderr)
     );
 }
+
+#[test]
+fn converge_sweeps_and_caches_a_reference_per_light_set() {
+    let folder = tempfile::tempdir().unwrap();
+    let json = folder.path().join("converge.json");
+    let base = [
+        "converge",
+        "-q",
+        "--technique",
+        "direct",
+        "--reference-samples",
+        "4",
+        "--reference-spp",
+        "4",
+        "--spp",
+        "1",
+        "--lightmap-resolution",
+        "32",
+    ];
+    let text = run_ok(
+        relight()
+            .args(base)
+            .arg("--cache")
+            .arg(folder.path())
+            .arg("--json")
+            .arg(&json)
+            .arg(scene("cornell-box-point")),
+    );
+    assert!(text.contains("image 8x8 tiles"), "{text}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let row = &report["settings"][0];
+    // `direct` brings no indirect light: every error is exactly 100 % and
+    // the light ratio 0, whatever the reference's noise.
+    for key in ["lightmap", "visible_lightmap", "image", "image_tiles"] {
+        assert!(
+            (row[key].as_f64().unwrap() - 1.0).abs() < 1e-9,
+            "{key}: {row}"
+        );
+    }
+    assert_eq!(row["light_ratio"].as_f64().unwrap(), 0.0);
+    assert!(report["visible_receivers"].as_u64().unwrap() > 0);
+    let cached = || {
+        std::fs::read_dir(folder.path())
+            .unwrap()
+            .filter(|entry| {
+                entry
+                    .as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .starts_with("relight-reference-")
+            })
+            .count()
+    };
+    assert_eq!(cached(), 1);
+    // The Cornell box with its area light shares nothing with the point-lit
+    // one but the study's settings: it must get a reference of its own.
+    run_ok(
+        relight()
+            .args(base)
+            .arg("--cache")
+            .arg(folder.path())
+            .arg(scene("cornell-box")),
+    );
+    assert_eq!(cached(), 2);
+    let error = run_err(
+        relight()
+            .args(base)
+            .args(["--sweep", "order"])
+            .arg(scene("cornell-box")),
+    );
+    assert!(error.contains("--sweep order"), "{error}");
+}

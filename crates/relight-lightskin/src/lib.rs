@@ -865,6 +865,12 @@ impl Technique for LightSkin {
         "lightskin"
     }
 
+    /// The paper's single bounce: virtual area lights are directly lit
+    /// surfaces, and nothing they light bounces further.
+    fn indirect_bounces(&self) -> Option<u32> {
+        Some(1)
+    }
+
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();

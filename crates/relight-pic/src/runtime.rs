@@ -777,6 +777,10 @@ impl Technique for Pic {
         "pic"
     }
 
+    fn indirect_bounces(&self) -> Option<u32> {
+        (self.settings.bounces == 1).then_some(1)
+    }
+
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let passes = if self.updates == 0 {
             self.settings.bounces

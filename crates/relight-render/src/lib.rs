@@ -7,6 +7,7 @@
 //! technique; [`render::render_reference`] path traces the same split. Both
 //! return [`image::Image`]s that [`metrics`] compares and [`image`] writes.
 
+pub mod convergence;
 pub mod image;
 pub mod metrics;
 pub mod render;

@@ -47,6 +47,61 @@ pub fn error_norms(values: &[Rgb], reference: &[Rgb]) -> ErrorNorms {
     }
 }
 
+/// Means of `tile` x `tile` pixel blocks (partial blocks at the right and
+/// bottom edges average the pixels they hold), row-major. Comparing tile
+/// means averages a Monte Carlo reference's per-pixel noise away, so the
+/// error left is the technique's bias at the scale a viewer judges light.
+pub fn tile_means(image: &Image, tile: u32) -> Vec<Rgb> {
+    let tile = tile.max(1);
+    let columns = image.width.div_ceil(tile);
+    let rows = image.height.div_ceil(tile);
+    let mut means = Vec::with_capacity((columns * rows) as usize);
+    for row in 0..rows {
+        for column in 0..columns {
+            let (x0, y0) = (column * tile, row * tile);
+            let (x1, y1) = ((x0 + tile).min(image.width), (y0 + tile).min(image.height));
+            let mut sum = [0.0f64; 3];
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let pixel = image.get(x, y);
+                    for (channel, total) in sum.iter_mut().enumerate() {
+                        *total += pixel[channel] as f64;
+                    }
+                }
+            }
+            let count = ((x1 - x0) * (y1 - y0)) as f64;
+            means.push(Rgb::new(
+                (sum[0] / count) as f32,
+                (sum[1] / count) as f32,
+                (sum[2] / count) as f32,
+            ));
+        }
+    }
+    means
+}
+
+/// Total luminance of `values` over that of `reference`: 1 when a
+/// technique brings as much light as the reference, whatever its
+/// distribution (NaN when the reference is black).
+pub fn light_ratio(values: &[Rgb], reference: &[Rgb]) -> f64 {
+    let total = |list: &[Rgb]| list.iter().map(|v| luminance(*v) as f64).sum::<f64>();
+    total(values) / total(reference)
+}
+
+/// Error norms of `values` against `reference` over the elements `keep`
+/// selects.
+pub fn error_norms_where(
+    values: &[Rgb],
+    reference: &[Rgb],
+    keep: impl Fn(usize) -> bool,
+) -> ErrorNorms {
+    let (picked, truth): (Vec<Rgb>, Vec<Rgb>) = (0..values.len())
+        .filter(|&index| keep(index))
+        .map(|index| (values[index], reference[index]))
+        .unzip();
+    error_norms(&picked, &truth)
+}
+
 /// Relative noise of a Monte Carlo estimate: the L2 norm of its per-element
 /// standard errors over the L2 norm of the estimate. A perfect technique
 /// compared against this reference would still show about this relRMSE.
@@ -94,6 +149,44 @@ pub fn error_image(values: &Image, reference: &Image, full_scale: f32) -> Image 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tile_means_average_blocks_and_edges() {
+        // 10 x 9 image whose pixel value is its x: 8x8 tiles give the mean
+        // x of columns 0..8 (3.5) and of the partial columns 8..10 (8.5).
+        let mut image = Image::new(10, 9);
+        for y in 0..9 {
+            for x in 0..10 {
+                image.pixels[(y * 10 + x) as usize] = Rgb::splat(x as f32);
+            }
+        }
+        let means = tile_means(&image, 8);
+        assert_eq!(means.len(), 4);
+        assert_eq!(means[0], Rgb::splat(3.5));
+        assert_eq!(means[1], Rgb::splat(8.5));
+        assert_eq!(means[2], Rgb::splat(3.5));
+        assert_eq!(means[3], Rgb::splat(8.5));
+    }
+
+    #[test]
+    fn tile_means_cancel_zero_mean_noise() {
+        // A checkerboard of +-1 around 2 has per-pixel relRMSE 1/2 but
+        // exact 2x2 tile means.
+        let mut noisy = Image::new(4, 4);
+        let mut flat = Image::new(4, 4);
+        for y in 0..4 {
+            for x in 0..4 {
+                let sign = if (x + y) % 2 == 0 { 1.0 } else { -1.0 };
+                noisy.pixels[(y * 4 + x) as usize] = Rgb::splat(2.0 + sign);
+                flat.pixels[(y * 4 + x) as usize] = Rgb::splat(2.0);
+            }
+        }
+        let per_pixel = error_norms(&noisy.pixels, &flat.pixels).relative_rmse;
+        assert!((per_pixel - 0.5).abs() < 1e-6);
+        let tiled = error_norms(&tile_means(&noisy, 2), &tile_means(&flat, 2)).relative_rmse;
+        assert_eq!(tiled, 0.0);
+        assert!((light_ratio(&noisy.pixels, &flat.pixels) - 1.0).abs() < 1e-9);
+    }
 
     #[test]
     fn norms_of_known_errors() {

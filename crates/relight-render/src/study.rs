@@ -23,17 +23,13 @@ pub fn study_context(scene_path: &str, resolution: u32) -> Arc<SceneContext> {
 
 /// The reference indirect lightmap of `context` under its scene's lights
 /// with `samples` paths per receiver, and its own relative noise; cached in
-/// the temporary folder under the scene fingerprint, lightmap and sample
-/// count.
+/// the temporary folder under a key of everything that changes it (see
+/// [`crate::convergence::ReferenceSet::key`]): two scene files over one
+/// mesh with different lights never share a reference.
 pub fn cached_reference_lightmap(context: &SceneContext, samples: u32) -> (Vec<Rgb>, f64) {
-    // The fingerprint covers receiver positions, so a change in where
-    // receivers stand never reuses a stale reference.
     let key = format!(
-        "{}-{}-{}-{}",
-        context.fingerprint(),
-        context.atlas.width,
-        context.atlas.receivers.len(),
-        samples
+        "{:016x}",
+        crate::convergence::ReferenceSet::key(context, PathSettings::default(), samples, 0)
     );
     let file = std::env::temp_dir().join(format!("relight-study-{key}.f32"));
     let count = context.atlas.receivers.len();
@@ -75,6 +71,16 @@ pub fn cached_reference_lightmap(context: &SceneContext, samples: u32) -> (Vec<R
 /// `"a=1,b=[[1,2],[3,4]]"` as key-value pairs: commas inside brackets
 /// belong to the value; parts without `=` are ignored.
 pub fn parse_pairs(list: &str) -> Vec<(String, String)> {
+    split_top_level(list)
+        .into_iter()
+        .filter_map(|part| part.split_once('='))
+        .map(|(key, value)| (key.trim().to_string(), value.trim().to_string()))
+        .collect()
+}
+
+/// `list` split at the commas outside brackets: `"1,[2,3]"` is `1` and
+/// `[2,3]`.
+pub fn split_top_level(list: &str) -> Vec<&str> {
     let mut parts = Vec::new();
     let (mut depth, mut start) = (0i32, 0usize);
     for (index, character) in list.char_indices() {
@@ -90,10 +96,6 @@ pub fn parse_pairs(list: &str) -> Vec<(String, String)> {
     }
     parts.push(&list[start..]);
     parts
-        .into_iter()
-        .filter_map(|part| part.split_once('='))
-        .map(|(key, value)| (key.trim().to_string(), value.trim().to_string()))
-        .collect()
 }
 
 /// What a study reports of one parameter set beyond the shared line: the

@@ -718,6 +718,10 @@ impl Technique for Srp {
         "srp"
     }
 
+    fn indirect_bounces(&self) -> Option<u32> {
+        (self.settings.bounces == 1).then_some(1)
+    }
+
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();

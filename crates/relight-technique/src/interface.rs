@@ -117,6 +117,14 @@ pub trait Technique: Send + Sync {
         None
     }
 
+    /// How many indirect bounces the technique computes, when it stops
+    /// short of all of them: comparisons measure it against the path tracer
+    /// limited to as many. `None`: all bounces (techniques that feed last
+    /// frame's light back converge to all).
+    fn indirect_bounces(&self) -> Option<u32> {
+        None
+    }
+
     /// Indirect irradiance per lightmap receiver after the last update, in
     /// the atlas's receiver order, when the technique stores a lightmap.
     fn receiver_irradiance(&self) -> Option<&[Rgb]>;

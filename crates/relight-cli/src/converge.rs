@@ -1,0 +1,409 @@
+//! `relight converge`: a technique's error against the path tracer as its
+//! parameters grow. A technique whose error does not fall toward the
+//! reference's own noise as its quality settings rise has a bias; this is
+//! the command that shows it.
+//!
+//! Data flow: the reference (per bounce count the swept settings need) is
+//! traced once and cached under a key of everything that changes it; each
+//! setting of the sweep's Cartesian product is baked, updated under the
+//! scene's lights, rendered and measured (see
+//! [`relight_render::convergence`]).
+
+use crate::progress::Bars;
+use crate::techniques;
+use anyhow::{bail, Context, Result};
+use relight_render::convergence::{
+    classify_receivers, visible_receivers, Measurement, ReceiverClass, ReferenceSet,
+};
+use relight_render::study::split_top_level;
+use relight_technique::{Frame, SceneContext};
+use relight_trace::path::PathSettings;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(clap::Args, Clone, Debug)]
+pub struct ConvergeSettings {
+    /// Parameter to sweep, repeatable: --sweep key=v1,v2,... (every
+    /// combination of the sweeps is measured).
+    #[arg(long = "sweep", value_name = "KEY=V1,V2,...")]
+    pub sweeps: Vec<String>,
+    /// Primary rays per pixel for the technique's image.
+    #[arg(long, default_value_t = 4)]
+    pub spp: u32,
+    /// Paths per pixel for the reference image.
+    #[arg(long, default_value_t = 256)]
+    pub reference_spp: u32,
+    /// Paths per receiver for the reference lightmap.
+    #[arg(long, default_value_t = 256)]
+    pub reference_samples: u32,
+    /// Indirect bounces of the reference (a technique that computes fewer
+    /// is measured against a reference limited to as many).
+    #[arg(long, default_value_t = 64)]
+    pub max_bounces: u32,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Folder for cached references (default: the system's temporary folder).
+    #[arg(long)]
+    pub cache: Option<PathBuf>,
+    /// Write the indirect-only images of the reference and of every setting here.
+    #[arg(long)]
+    pub images: Option<PathBuf>,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Also write the Markdown report to this file.
+    #[arg(long)]
+    pub markdown: Option<PathBuf>,
+}
+
+/// `key=v1,v2` as the key and its values; brackets keep their commas
+/// (`probes=[[0,1,0],[1,1,1]],[[0,0,0]]`).
+fn parse_sweep(text: &str) -> Result<(String, Vec<String>)> {
+    let (key, values) = text
+        .split_once('=')
+        .with_context(|| format!("--sweep {text}: expected KEY=V1,V2,..."))?;
+    let values: Vec<String> = split_top_level(values)
+        .into_iter()
+        .map(|value| value.trim().to_string())
+        .filter(|value| !value.is_empty())
+        .collect();
+    if key.trim().is_empty() || values.is_empty() {
+        bail!("--sweep {text}: expected KEY=V1,V2,... with at least one value");
+    }
+    Ok((key.trim().to_string(), values))
+}
+
+/// Every combination of the sweeps' values, the last sweep varying fastest.
+fn combinations(sweeps: &[(String, Vec<String>)]) -> Vec<Vec<(String, String)>> {
+    let mut settings = vec![Vec::new()];
+    for (key, values) in sweeps {
+        settings = settings
+            .into_iter()
+            .flat_map(|setting: Vec<(String, String)>| {
+                values.iter().map(move |value| {
+                    let mut next = setting.clone();
+                    next.push((key.clone(), value.clone()));
+                    next
+                })
+            })
+            .collect();
+    }
+    settings
+}
+
+struct Row {
+    setting: String,
+    bounces: u32,
+    bake_seconds: f64,
+    update_ms: f64,
+    measurement: Measurement,
+}
+
+pub fn run(
+    context: &Arc<SceneContext>,
+    scene_path: &Path,
+    technique: &crate::TechniqueOptions,
+    settings: &ConvergeSettings,
+    quiet: bool,
+) -> Result<String> {
+    let kind = techniques::find(&technique.technique)?;
+    if kind.name() == "reference" {
+        bail!("--technique reference is what converge compares with; name another technique");
+    }
+    if technique.bake.is_some() {
+        bail!("converge bakes every setting itself; drop --bake");
+    }
+    let sweeps = settings
+        .sweeps
+        .iter()
+        .map(|sweep| parse_sweep(sweep))
+        .collect::<Result<Vec<_>>>()?;
+    let fixed = technique.pairs()?;
+    let bars = Bars::new(quiet);
+    let cache = settings.cache.clone().unwrap_or_else(std::env::temp_dir);
+    if let Some(folder) = &settings.images {
+        std::fs::create_dir_all(folder)
+            .with_context(|| format!("{}: cannot create the images folder", folder.display()))?;
+    }
+    let visible = visible_receivers(context);
+    let classes = classify_receivers(context);
+    let mut references: BTreeMap<u32, ReferenceSet> = BTreeMap::new();
+    let lights = context.scene.lights.clone();
+    let mut rows = Vec::new();
+    for (index, swept) in combinations(&sweeps).into_iter().enumerate() {
+        let mut pairs = fixed.clone();
+        pairs.extend(swept.iter().cloned());
+        let setting = if swept.is_empty() {
+            "defaults".to_string()
+        } else {
+            swept
+                .iter()
+                .map(|(key, value)| format!("{key}={value}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        if !quiet {
+            eprintln!("== {setting}");
+        }
+        let start = Instant::now();
+        let payload = if kind.needs_bake() {
+            Some(
+                kind.bake(context, &pairs, &bars)
+                    .with_context(|| format!("baking {} with {setting}", kind.name()))?,
+            )
+        } else {
+            None
+        };
+        let bake_seconds = start.elapsed().as_secs_f64();
+        let mut instance = kind
+            .create(context.clone(), payload.as_deref(), &pairs, &bars)
+            .with_context(|| format!("creating {} with {setting}", kind.name()))?;
+        instance.update(&Frame {
+            lights: &lights,
+            index: 0,
+        })?;
+        let update_ms = instance.timings().total().as_secs_f64() * 1e3;
+        let bounces = instance
+            .indirect_bounces()
+            .map_or(settings.max_bounces, |own| own.min(settings.max_bounces));
+        let reference = references.entry(bounces).or_insert_with(|| {
+            let path_settings = PathSettings {
+                max_bounces: bounces,
+                seed: settings.seed,
+                ..PathSettings::default()
+            };
+            ReferenceSet::cached(
+                context,
+                path_settings,
+                settings.reference_samples,
+                settings.reference_spp,
+                Some(&cache),
+                &bars,
+            )
+        });
+        let (measurement, image) = Measurement::of(
+            context,
+            instance.as_ref(),
+            reference,
+            &visible,
+            &classes,
+            settings.spp,
+            &bars,
+        );
+        if let Some(folder) = &settings.images {
+            let exposure = reference.image.auto_exposure();
+            let reference_file = folder.join(format!("reference-{bounces}-bounces.png"));
+            if !reference_file.exists() {
+                reference.image.write(&reference_file, Some(exposure))?;
+            }
+            image.write(
+                &folder.join(format!("{index:02}-indirect.png")),
+                Some(exposure),
+            )?;
+            image.write(&folder.join(format!("{index:02}-indirect.exr")), None)?;
+        }
+        rows.push(Row {
+            setting,
+            bounces,
+            bake_seconds,
+            update_ms,
+            measurement,
+        });
+    }
+    let report = markdown(
+        scene_path,
+        kind.name(),
+        settings,
+        &references,
+        &visible,
+        &rows,
+    )?;
+    if let Some(path) = &settings.markdown {
+        std::fs::write(path, &report)
+            .with_context(|| format!("{}: cannot write the report", path.display()))?;
+    }
+    if let Some(path) = &settings.json {
+        let json = json(
+            scene_path,
+            kind.name(),
+            settings,
+            &references,
+            &visible,
+            &rows,
+        );
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("{}: cannot write the JSON report", path.display()))?;
+    }
+    Ok(report)
+}
+
+fn percent(value: f64) -> String {
+    if value.is_nan() {
+        "-".to_string()
+    } else {
+        format!("{:.1} %", value * 100.0)
+    }
+}
+
+fn markdown(
+    scene_path: &Path,
+    technique: &str,
+    settings: &ConvergeSettings,
+    references: &BTreeMap<u32, ReferenceSet>,
+    visible: &[bool],
+    rows: &[Row],
+) -> Result<String> {
+    let mut out = String::new();
+    writeln!(out, "### {technique} on {}\n", scene_path.display())?;
+    writeln!(
+        out,
+        "{} receivers, {} seen by the camera; reference: {} paths per receiver, {} per pixel, seed {}.\n",
+        visible.len(),
+        visible.iter().filter(|&&seen| seen).count(),
+        settings.reference_samples,
+        settings.reference_spp,
+        settings.seed
+    )?;
+    for (bounces, reference) in references {
+        let noise = reference.noise(visible);
+        writeln!(
+            out,
+            "Reference noise at {bounces} bounces: lightmap {}, visible lightmap {}, image {}, image 8x8 tiles {}.",
+            percent(noise.lightmap),
+            percent(noise.visible_lightmap),
+            percent(noise.image),
+            percent(noise.image_tiles)
+        )?;
+    }
+    writeln!(out)?;
+    writeln!(out, "| setting | bounces | lightmap relRMSE | visible lightmap | image relRMSE | image 8x8 tiles | light ratio | bake s | update ms |")?;
+    writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|---:|")?;
+    for row in rows {
+        let m = &row.measurement;
+        writeln!(
+            out,
+            "| {} | {} | {} | {} | {} | {} | {:.3}x | {:.1} | {:.2} |",
+            row.setting,
+            row.bounces,
+            percent(m.lightmap),
+            percent(m.visible_lightmap),
+            percent(m.image),
+            percent(m.image_tiles),
+            m.light_ratio,
+            row.bake_seconds,
+            row.update_ms
+        )?;
+    }
+    if rows.iter().any(|row| !row.measurement.classes.is_empty()) {
+        writeln!(out, "\nLightmap error by receiver class (share of the squared error, relRMSE within the class, light against the reference's):\n")?;
+        write!(out, "| setting |")?;
+        for class in ReceiverClass::ALL {
+            write!(out, " {} |", class.name())?;
+        }
+        writeln!(out)?;
+        writeln!(out, "|---|{}", "---:|".repeat(ReceiverClass::ALL.len()))?;
+        if let Some(first) = rows.iter().find(|row| !row.measurement.classes.is_empty()) {
+            write!(out, "| receivers (seen) |")?;
+            for class in &first.measurement.classes {
+                write!(out, " {} ({}) |", class.receivers, class.visible)?;
+            }
+            writeln!(out)?;
+        }
+        for row in rows {
+            write!(out, "| {} |", row.setting)?;
+            for class in &row.measurement.classes {
+                write!(
+                    out,
+                    " {} / {} / {:.2}x |",
+                    percent(class.share),
+                    percent(class.relative_rmse),
+                    class.light_ratio
+                )?;
+            }
+            writeln!(out)?;
+        }
+    }
+    Ok(out)
+}
+
+fn json(
+    scene_path: &Path,
+    technique: &str,
+    settings: &ConvergeSettings,
+    references: &BTreeMap<u32, ReferenceSet>,
+    visible: &[bool],
+    rows: &[Row],
+) -> serde_json::Value {
+    let number = |value: f64| {
+        if value.is_finite() {
+            serde_json::json!(value)
+        } else {
+            serde_json::Value::Null
+        }
+    };
+    serde_json::json!({
+        "scene": scene_path.display().to_string(),
+        "technique": technique,
+        "receivers": visible.len(),
+        "visible_receivers": visible.iter().filter(|&&seen| seen).count(),
+        "reference_samples": settings.reference_samples,
+        "reference_spp": settings.reference_spp,
+        "seed": settings.seed,
+        "reference_noise": references.iter().map(|(bounces, reference)| {
+            let noise = reference.noise(visible);
+            serde_json::json!({
+                "bounces": bounces,
+                "lightmap": number(noise.lightmap),
+                "visible_lightmap": number(noise.visible_lightmap),
+                "image": number(noise.image),
+                "image_tiles": number(noise.image_tiles),
+            })
+        }).collect::<Vec<_>>(),
+        "settings": rows.iter().map(|row| {
+            let m = &row.measurement;
+            serde_json::json!({
+                "setting": row.setting,
+                "bounces": row.bounces,
+                "bake_seconds": row.bake_seconds,
+                "update_ms": row.update_ms,
+                "lightmap": number(m.lightmap),
+                "visible_lightmap": number(m.visible_lightmap),
+                "image": number(m.image),
+                "image_tiles": number(m.image_tiles),
+                "light_ratio": number(m.light_ratio),
+                "classes": m.classes.iter().map(|class| serde_json::json!({
+                    "class": class.class.name(),
+                    "receivers": class.receivers,
+                    "visible": class.visible,
+                    "share": number(class.share),
+                    "relative_rmse": number(class.relative_rmse),
+                    "light_ratio": number(class.light_ratio),
+                })).collect::<Vec<_>>(),
+            })
+        }).collect::<Vec<_>>(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweeps_combine_with_the_last_varying_fastest() {
+        let sweeps = vec![
+            parse_sweep("order=2,7").unwrap(),
+            parse_sweep("probes=[[0,1,0],[1,1,1]],[[0,0,0]]").unwrap(),
+        ];
+        assert_eq!(sweeps[1].1, vec!["[[0,1,0],[1,1,1]]", "[[0,0,0]]"]);
+        let all = combinations(&sweeps);
+        assert_eq!(all.len(), 4);
+        assert_eq!(all[1][0], ("order".to_string(), "2".to_string()));
+        assert_eq!(all[1][1].1, "[[0,0,0]]");
+        assert_eq!(combinations(&[]), vec![Vec::new()]);
+        assert!(parse_sweep("order").is_err());
+        assert!(parse_sweep("order=").is_err());
+    }
+}

@@ -1,0 +1,429 @@
+//! What a convergence study measures of a technique against the path
+//! tracer, beyond one relRMSE: the reference (lightmap and camera image,
+//! cached on disk under a key of everything that changes it), which
+//! receivers the camera sees, what kind of place each receiver stands in,
+//! and the error norms over each of those.
+//!
+//! Data flow: [`ReferenceSet::cached`] path traces (or reads) the
+//! reference once per scene and bounce count; [`visible_receivers`] and
+//! [`classify_receivers`] are computed once per scene; [`Measurement::of`]
+//! compares one updated technique with them.
+
+use crate::image::Image;
+use crate::metrics::{error_norms, error_norms_where, light_ratio, relative_noise, tile_means};
+use crate::render::{render_reference, render_with_technique};
+use rayon::prelude::*;
+use relight_core::sampling::{cosine_hemisphere_around, stratified_square};
+use relight_core::Rgb;
+use relight_technique::{reference_receiver_irradiance, Progress, SceneContext, Technique};
+use relight_trace::bvh::Ray;
+use relight_trace::path::{CameraRays, PathSettings};
+use std::path::Path;
+
+/// Pixel tiles whose means the tile error compares: 8x8 averages the
+/// reference's per-pixel noise down by 8 while keeping the scale at which
+/// blotches, seams and leaks show.
+pub const TILE: u32 = 8;
+
+/// The path-traced reference of one scene, light set and path setting.
+#[derive(Clone, Debug)]
+pub struct ReferenceSet {
+    pub lightmap: Vec<Rgb>,
+    pub lightmap_error: Vec<Rgb>,
+    /// Indirect-only camera image and its per-pixel standard error.
+    pub image: Image,
+    pub image_error: Image,
+}
+
+/// A 64-bit FNV-1a over bytes: cache keys, not security.
+fn fnv(hash: &mut u64, bytes: &[u8]) {
+    for byte in bytes {
+        *hash ^= *byte as u64;
+        *hash = hash.wrapping_mul(0x0100_0000_01b3);
+    }
+}
+
+impl ReferenceSet {
+    /// Everything the reference depends on: geometry, materials and
+    /// receivers (the bake fingerprint), texture texels, lights,
+    /// environment, camera, direct-light and path settings, sample counts.
+    /// Two scene files over one mesh with different lights get different
+    /// keys.
+    pub fn key(context: &SceneContext, settings: PathSettings, samples: u32, spp: u32) -> u64 {
+        let mut hash = 0xcbf2_9ce4_8422_2325u64;
+        fnv(&mut hash, &context.fingerprint().to_le_bytes());
+        let scene = &context.scene;
+        for texture in &scene.textures {
+            fnv(&mut hash, &texture.width.to_le_bytes());
+            fnv(&mut hash, &texture.height.to_le_bytes());
+            fnv(&mut hash, bytemuck::cast_slice(&texture.texels));
+        }
+        let described = format!(
+            "{:?}|{:?}|{:?}|{:?}|{:?}|{samples}|{spp}",
+            scene.lights, scene.environment, scene.camera, context.settings.direct, settings
+        );
+        fnv(&mut hash, described.as_bytes());
+        hash
+    }
+
+    /// The reference with `samples` paths per receiver and `spp` per pixel,
+    /// read from `cache` when a file of the same key is there, else traced
+    /// and written there (a cache that cannot be written only costs the
+    /// next run its time).
+    pub fn cached(
+        context: &SceneContext,
+        settings: PathSettings,
+        samples: u32,
+        spp: u32,
+        cache: Option<&Path>,
+        progress: &dyn Progress,
+    ) -> Self {
+        let key = Self::key(context, settings, samples, spp);
+        let file = cache.map(|folder| folder.join(format!("relight-reference-{key:016x}.f32")));
+        let receivers = context.atlas.receivers.len();
+        let [width, height] = context.scene.camera.resolution;
+        let pixels = (width * height) as usize;
+        if let Some(values) = file.as_ref().and_then(|file| std::fs::read(file).ok()) {
+            if values.len() == (receivers + pixels) * 2 * 12 {
+                let mut floats = values
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+                let mut take = |count: usize| -> Vec<Rgb> {
+                    (0..count)
+                        .map(|_| {
+                            let mut next = || floats.next().unwrap_or(0.0);
+                            Rgb::new(next(), next(), next())
+                        })
+                        .collect()
+                };
+                let lightmap = take(receivers);
+                let lightmap_error = take(receivers);
+                let image = take(pixels);
+                let image_error = take(pixels);
+                let as_image = |pixels| Image {
+                    width,
+                    height,
+                    pixels,
+                };
+                return Self {
+                    lightmap,
+                    lightmap_error,
+                    image: as_image(image),
+                    image_error: as_image(image_error),
+                };
+            }
+        }
+        let lights = &context.scene.lights;
+        let traced = reference_receiver_irradiance(context, lights, settings, samples, progress);
+        let renders = render_reference(context, lights, settings, spp, progress);
+        let set = Self {
+            lightmap: traced.mean,
+            lightmap_error: traced.standard_error,
+            image: renders.indirect,
+            image_error: renders.indirect_standard_error,
+        };
+        if let Some(file) = file {
+            let mut bytes = Vec::with_capacity((receivers + pixels) * 24);
+            for list in [
+                &set.lightmap,
+                &set.lightmap_error,
+                &set.image.pixels,
+                &set.image_error.pixels,
+            ] {
+                for value in list.iter() {
+                    for component in value.to_array() {
+                        bytes.extend_from_slice(&component.to_le_bytes());
+                    }
+                }
+            }
+            let _ = std::fs::write(file, bytes);
+        }
+        set
+    }
+
+    /// The reference's own relative noise: over all receivers, over those
+    /// `visible` selects, per pixel and over tile means.
+    pub fn noise(&self, visible: &[bool]) -> Noise {
+        let pick = |list: &[Rgb]| -> Vec<Rgb> {
+            list.iter()
+                .zip(visible)
+                .filter(|(_, &seen)| seen)
+                .map(|(value, _)| *value)
+                .collect()
+        };
+        // A tile mean's standard error is the root sum of its pixels'
+        // squared errors over the pixel count (independent pixels).
+        let tile_error = {
+            let squared = Image {
+                width: self.image_error.width,
+                height: self.image_error.height,
+                pixels: self.image_error.pixels.iter().map(|e| *e * *e).collect(),
+            };
+            let pixels_per_tile = (TILE * TILE) as f32;
+            tile_means(&squared, TILE)
+                .into_iter()
+                .map(|mean| {
+                    Rgb::new(mean.x.sqrt(), mean.y.sqrt(), mean.z.sqrt()) / pixels_per_tile.sqrt()
+                })
+                .collect::<Vec<_>>()
+        };
+        Noise {
+            lightmap: relative_noise(&self.lightmap, &self.lightmap_error),
+            visible_lightmap: relative_noise(&pick(&self.lightmap), &pick(&self.lightmap_error)),
+            image: relative_noise(&self.image.pixels, &self.image_error.pixels),
+            image_tiles: relative_noise(&tile_means(&self.image, TILE), &tile_error),
+        }
+    }
+}
+
+/// The reference's own relative noise in each norm a study reports: a
+/// perfect technique would still show about this much error.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Noise {
+    pub lightmap: f64,
+    pub visible_lightmap: f64,
+    pub image: f64,
+    pub image_tiles: f64,
+}
+
+/// Receivers whose texels a camera pixel reads from the front (2x2 primary
+/// rays per pixel, each marking the texels of its bilinear footprint):
+/// the part of the lightmap a viewer of the scene's camera judges.
+pub fn visible_receivers(context: &SceneContext) -> Vec<bool> {
+    let camera = CameraRays::new(&context.scene.camera);
+    let atlas = &context.atlas;
+    let receiver_of_texel = atlas.dilated_receiver_of_texel();
+    let mesh = &context.scene.mesh;
+    let seen: Vec<Vec<u32>> = (0..camera.height)
+        .into_par_iter()
+        .map(|y| {
+            let mut row = Vec::new();
+            for x in 0..camera.width {
+                for sub in 0..4u32 {
+                    let offset = glam::Vec2::new(
+                        0.25 + 0.5 * (sub % 2) as f32,
+                        0.25 + 0.5 * (sub / 2) as f32,
+                    );
+                    let ray = camera.ray(x, y, offset);
+                    let Some(hit) = context.bvh.intersect(&ray) else {
+                        continue;
+                    };
+                    let front = mesh.geometric_normal(hit.triangle as usize);
+                    if front.dot(ray.direction) >= 0.0 {
+                        continue;
+                    }
+                    for (texel, weight) in atlas.bilinear_texels(hit.triangle, hit.barycentric) {
+                        let receiver = receiver_of_texel[texel];
+                        if weight > 0.0 && receiver != u32::MAX {
+                            row.push(receiver);
+                        }
+                    }
+                }
+            }
+            row
+        })
+        .collect();
+    let mut visible = vec![false; atlas.receivers.len()];
+    for receiver in seen.into_iter().flatten() {
+        visible[receiver as usize] = true;
+    }
+    visible
+}
+
+/// What kind of place a receiver stands in, for splitting a technique's
+/// error by cause.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum ReceiverClass {
+    /// More than a quarter of its hemisphere's hits are back faces: its
+    /// texel centre lies inside or under other geometry.
+    Enclosed,
+    /// Some hemisphere ray hits geometry within two texels: a concave
+    /// corner or a contact, where interpolation across texels is hardest.
+    Corner,
+    /// Single-sided geometry: the ray straight behind it meets no back
+    /// face, so its other side is open space that the lightmap does not
+    /// hold (banners, thin walls, open meshes).
+    Thin,
+    /// Most of its hemisphere escapes the scene: roofs, outer walls.
+    Exterior,
+    /// Everything else: the inside of rooms.
+    Interior,
+}
+
+impl ReceiverClass {
+    pub const ALL: [ReceiverClass; 5] = [
+        ReceiverClass::Enclosed,
+        ReceiverClass::Corner,
+        ReceiverClass::Thin,
+        ReceiverClass::Exterior,
+        ReceiverClass::Interior,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ReceiverClass::Enclosed => "enclosed",
+            ReceiverClass::Corner => "corner",
+            ReceiverClass::Thin => "thin",
+            ReceiverClass::Exterior => "exterior",
+            ReceiverClass::Interior => "interior",
+        }
+    }
+}
+
+/// Hemisphere rays per receiver for [`classify_receivers`]: stratified
+/// 4x4, enough to tell a closed gap from open space.
+const CLASSIFY_RAYS: u32 = 16;
+
+/// The class of every receiver, from 16 stratified cosine-weighted rays
+/// over its front hemisphere and one ray straight behind it.
+pub fn classify_receivers(context: &SceneContext) -> Vec<ReceiverClass> {
+    let receivers = &context.atlas.receivers;
+    let mesh = &context.scene.mesh;
+    let bvh = &context.bvh;
+    let epsilon = 1e-4 * mesh.bounds().1.distance(mesh.bounds().0).max(1e-3);
+    let corner_distance = 2.0 * context.atlas.metres_per_texel;
+    (0..receivers.len())
+        .into_par_iter()
+        .map(|index| {
+            let position = receivers.positions[index];
+            let normal = receivers.normals[index];
+            let mut rng = relight_core::sampling::SampleStream::new(0x5eed, index as u64, 0);
+            let (mut hits, mut back_hits, mut escapes, mut nearest) = (0, 0, 0, f32::INFINITY);
+            for sample in 0..CLASSIFY_RAYS {
+                let square = stratified_square(sample, CLASSIFY_RAYS, glam::Vec2::ZERO, &mut rng);
+                let direction = cosine_hemisphere_around(normal, square);
+                let ray = Ray {
+                    origin: position + normal * epsilon,
+                    direction,
+                    t_max: f32::INFINITY,
+                };
+                match bvh.intersect(&ray) {
+                    Some(hit) => {
+                        hits += 1;
+                        nearest = nearest.min(hit.t);
+                        if mesh.geometric_normal(hit.triangle as usize).dot(direction) > 0.0 {
+                            back_hits += 1;
+                        }
+                    }
+                    None => escapes += 1,
+                }
+            }
+            let behind = Ray {
+                origin: position - normal * epsilon,
+                direction: -normal,
+                t_max: f32::INFINITY,
+            };
+            let closed_behind = bvh
+                .intersect(&behind)
+                .is_some_and(|hit| mesh.geometric_normal(hit.triangle as usize).dot(-normal) > 0.0);
+            if back_hits * 4 > hits {
+                ReceiverClass::Enclosed
+            } else if nearest < corner_distance {
+                ReceiverClass::Corner
+            } else if !closed_behind {
+                ReceiverClass::Thin
+            } else if escapes * 2 > CLASSIFY_RAYS {
+                ReceiverClass::Exterior
+            } else {
+                ReceiverClass::Interior
+            }
+        })
+        .collect()
+}
+
+/// One class's part of a lightmap error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClassError {
+    pub class: ReceiverClass,
+    pub receivers: usize,
+    /// Of those, how many the camera sees.
+    pub visible: usize,
+    /// This class's share of the whole lightmap's squared error.
+    pub share: f64,
+    /// relRMSE within the class.
+    pub relative_rmse: f64,
+    /// Total light against the reference's within the class.
+    pub light_ratio: f64,
+}
+
+/// A technique's indirect light against a [`ReferenceSet`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Measurement {
+    pub lightmap: f64,
+    pub visible_lightmap: f64,
+    pub image: f64,
+    pub image_tiles: f64,
+    /// Total indirect light in the camera image against the reference's.
+    pub light_ratio: f64,
+    pub classes: Vec<ClassError>,
+}
+
+impl Measurement {
+    /// Renders `technique` (already updated under the scene's lights) with
+    /// `spp` primary rays per pixel and measures it.
+    pub fn of(
+        context: &SceneContext,
+        technique: &dyn Technique,
+        reference: &ReferenceSet,
+        visible: &[bool],
+        classes: &[ReceiverClass],
+        spp: u32,
+        progress: &dyn Progress,
+    ) -> (Self, Image) {
+        let renders =
+            render_with_technique(context, &context.scene.lights, technique, spp, 1, progress);
+        let image = renders.indirect;
+        let receivers = technique
+            .receiver_irradiance()
+            .filter(|values| values.len() == reference.lightmap.len());
+        let (lightmap, visible_lightmap, classes) = match receivers {
+            Some(values) => {
+                let truth = &reference.lightmap;
+                let squared_error = |index: usize| -> f64 {
+                    (0..3)
+                        .map(|c| ((values[index][c] - truth[index][c]) as f64).powi(2))
+                        .sum()
+                };
+                let total: f64 = (0..values.len()).map(squared_error).sum();
+                let split = ReceiverClass::ALL
+                    .iter()
+                    .map(|&class| {
+                        let members = |index: usize| classes[index] == class;
+                        let of_class: Vec<usize> =
+                            (0..values.len()).filter(|&i| members(i)).collect();
+                        let error: f64 = of_class.iter().map(|&i| squared_error(i)).sum();
+                        let pick =
+                            |list: &[Rgb]| of_class.iter().map(|&i| list[i]).collect::<Vec<_>>();
+                        ClassError {
+                            class,
+                            receivers: of_class.len(),
+                            visible: of_class.iter().filter(|&&i| visible[i]).count(),
+                            share: if total > 0.0 { error / total } else { 0.0 },
+                            relative_rmse: error_norms_where(values, truth, members).relative_rmse,
+                            light_ratio: light_ratio(&pick(values), &pick(truth)),
+                        }
+                    })
+                    .collect();
+                (
+                    error_norms(values, truth).relative_rmse,
+                    error_norms_where(values, truth, |i| visible[i]).relative_rmse,
+                    split,
+                )
+            }
+            None => (f64::NAN, f64::NAN, Vec::new()),
+        };
+        let measurement = Self {
+            lightmap,
+            visible_lightmap,
+            image: error_norms(&image.pixels, &reference.image.pixels).relative_rmse,
+            image_tiles: error_norms(
+                &tile_means(&image, TILE),
+                &tile_means(&reference.image, TILE),
+            )
+            .relative_rmse,
+            light_ratio: light_ratio(&image.pixels, &reference.image.pixels),
+            classes,
+        };
+        (measurement, image)
+    }
+}
