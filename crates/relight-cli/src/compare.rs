@@ -5,10 +5,12 @@ use crate::progress::Bars;
 use crate::techniques;
 use anyhow::{bail, Context, Result};
 use relight_core::Rgb;
-use relight_render::metrics::{error_image, error_norms, relative_noise, ErrorNorms};
+use relight_render::convergence::TILE;
+use relight_render::metrics::{error_image, error_norms, relative_noise, tile_means, ErrorNorms};
 use relight_render::render::{render_reference, render_with_technique};
 use relight_technique::{reference_receiver_irradiance, Frame, SceneContext};
 use relight_trace::path::PathSettings;
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -37,10 +39,20 @@ pub struct CompareSettings {
     pub set: Vec<String>,
 }
 
+struct Reference {
+    lightmap: relight_technique::ReferenceLightmap,
+    renders: relight_render::render::Renders,
+    lightmap_seconds: f64,
+    image_seconds: f64,
+}
+
 struct Row {
     technique: String,
+    /// Indirect bounces of the reference this row is measured against.
+    bounces: u32,
     lightmap: ErrorNorms,
     image: ErrorNorms,
+    image_tiles: f64,
     update_ms: f64,
     memory_bytes: usize,
 }
@@ -80,45 +92,56 @@ pub fn run(
         ..PathSettings::default()
     };
 
-    let start = Instant::now();
-    let reference_lightmap = reference_receiver_irradiance(
-        context,
-        &lights,
-        path_settings,
-        settings.reference_samples,
-        &bars,
-    );
-    let reference_lightmap_seconds = start.elapsed().as_secs_f64();
-    let start = Instant::now();
-    let reference = render_reference(
-        context,
-        &lights,
-        path_settings,
-        settings.reference_spp,
-        &bars,
-    );
-    let reference_image_seconds = start.elapsed().as_secs_f64();
-    let indirect_exposure = reference.indirect.auto_exposure();
-    let full_exposure = reference.full.auto_exposure();
-    reference.indirect.write(
+    // The path tracer with all bounces, and limited to as many as a
+    // technique computes (LightSkin's one) for that technique's row.
+    let mut references: BTreeMap<u32, Reference> = BTreeMap::new();
+    let trace = |bounces: u32| -> Reference {
+        let path_settings = PathSettings {
+            max_bounces: bounces,
+            ..path_settings
+        };
+        let start = Instant::now();
+        let lightmap = reference_receiver_irradiance(
+            context,
+            &lights,
+            path_settings,
+            settings.reference_samples,
+            &bars,
+        );
+        let lightmap_seconds = start.elapsed().as_secs_f64();
+        let start = Instant::now();
+        let renders = render_reference(
+            context,
+            &lights,
+            path_settings,
+            settings.reference_spp,
+            &bars,
+        );
+        Reference {
+            lightmap,
+            renders,
+            lightmap_seconds,
+            image_seconds: start.elapsed().as_secs_f64(),
+        }
+    };
+    let all_bounces = trace(settings.max_bounces);
+    let indirect_exposure = all_bounces.renders.indirect.auto_exposure();
+    let full_exposure = all_bounces.renders.full.auto_exposure();
+    let written = &all_bounces.renders;
+    written.indirect.write(
         &output.join("reference-indirect.png"),
         Some(indirect_exposure),
     )?;
-    reference
+    written
         .indirect
         .write(&output.join("reference-indirect.exr"), None)?;
-    reference
+    written
         .full
         .write(&output.join("reference-full.png"), Some(full_exposure))?;
-    reference
+    written
         .full
         .write(&output.join("reference-full.exr"), None)?;
-    let lightmap_noise =
-        relative_noise(&reference_lightmap.mean, &reference_lightmap.standard_error);
-    let image_noise = relative_noise(
-        &reference.indirect.pixels,
-        &reference.indirect_standard_error.pixels,
-    );
+    references.insert(settings.max_bounces, all_bounces);
 
     let mut rows = Vec::new();
     for kind in kinds {
@@ -143,10 +166,14 @@ pub fn run(
             update_ms.push(technique.timings().total().as_secs_f64() * 1e3);
         }
         update_ms.sort_by(|a, b| a.total_cmp(b));
+        let bounces = technique
+            .indirect_bounces()
+            .map_or(settings.max_bounces, |own| own.min(settings.max_bounces));
+        let reference = references.entry(bounces).or_insert_with(|| trace(bounces));
         let receivers = technique.receiver_irradiance().map(<[Rgb]>::to_vec);
         let lightmap = match receivers {
-            Some(values) if values.len() == reference_lightmap.mean.len() => {
-                error_norms(&values, &reference_lightmap.mean)
+            Some(values) if values.len() == reference.lightmap.mean.len() => {
+                error_norms(&values, &reference.lightmap.mean)
             }
             _ => ErrorNorms {
                 relative_rmse: f64::NAN,
@@ -161,7 +188,12 @@ pub fn run(
             settings.seed,
             &bars,
         );
-        let image = error_norms(&renders.indirect.pixels, &reference.indirect.pixels);
+        let reference_image = &reference.renders.indirect;
+        let image = error_norms(&renders.indirect.pixels, &reference_image.pixels);
+        let image_tiles = error_norms(
+            &tile_means(&renders.indirect, TILE),
+            &tile_means(reference_image, TILE),
+        );
         let name = kind.name();
         renders.indirect.write(
             &output.join(format!("{name}-indirect.png")),
@@ -174,12 +206,14 @@ pub fn run(
             &output.join(format!("{name}-full.png")),
             Some(full_exposure),
         )?;
-        error_image(&renders.indirect, &reference.indirect, 0.5)
+        error_image(&renders.indirect, reference_image, 0.5)
             .write(&output.join(format!("{name}-error.png")), Some(1.0))?;
         rows.push(Row {
             technique: name.to_string(),
+            bounces,
             lightmap,
             image,
+            image_tiles: image_tiles.relative_rmse,
             update_ms: update_ms[update_ms.len() / 2],
             memory_bytes: technique.memory().iter().map(|entry| entry.bytes).sum(),
         });
@@ -187,28 +221,41 @@ pub fn run(
 
     let mut table = String::new();
     writeln!(table, "### {}\n", scene_path.display())?;
+    for (bounces, reference) in &references {
+        let lightmap_noise =
+            relative_noise(&reference.lightmap.mean, &reference.lightmap.standard_error);
+        let image_noise = relative_noise(
+            &reference.renders.indirect.pixels,
+            &reference.renders.indirect_standard_error.pixels,
+        );
+        writeln!(
+            table,
+            "Reference at {bounces} bounces: {} paths per receiver ({:.1} s, its own noise {:.1} % relRMSE), {} paths per pixel ({:.1} s, noise {:.1} %).",
+            settings.reference_samples,
+            reference.lightmap_seconds,
+            lightmap_noise * 100.0,
+            settings.reference_spp,
+            reference.image_seconds,
+            image_noise * 100.0,
+        )?;
+    }
     writeln!(
         table,
-        "{} receivers; reference: {} paths per receiver ({:.1} s, its own noise {:.1} % relRMSE), {} paths per pixel ({:.1} s, noise {:.1} %), max bounces {}.\n",
-        context.atlas.receivers.len(),
-        settings.reference_samples,
-        reference_lightmap_seconds,
-        lightmap_noise * 100.0,
-        settings.reference_spp,
-        reference_image_seconds,
-        image_noise * 100.0,
-        settings.max_bounces
+        "\n{} receivers. Each technique is measured against the path tracer with as many bounces as it computes (LightSkin: one).\n",
+        context.atlas.receivers.len()
     )?;
-    writeln!(table, "| technique | lightmap relRMSE | lightmap MRE | image relRMSE | image MRE | update ms | memory |")?;
-    writeln!(table, "|---|---:|---:|---:|---:|---:|---:|")?;
+    writeln!(table, "| technique | bounces | lightmap relRMSE | lightmap MRE | image relRMSE | image 8x8 tiles | image MRE | update ms | memory |")?;
+    writeln!(table, "|---|---:|---:|---:|---:|---:|---:|---:|---:|")?;
     for row in &rows {
         writeln!(
             table,
-            "| {} | {:.1} % | {:.1} % | {:.1} % | {:.1} % | {:.2} | {} |",
+            "| {} | {} | {:.1} % | {:.1} % | {:.1} % | {:.1} % | {:.1} % | {:.2} | {} |",
             row.technique,
+            row.bounces,
             row.lightmap.relative_rmse * 100.0,
             row.lightmap.mean_relative_error * 100.0,
             row.image.relative_rmse * 100.0,
+            row.image_tiles * 100.0,
             row.image.mean_relative_error * 100.0,
             row.update_ms,
             human_bytes(row.memory_bytes)

@@ -12,9 +12,8 @@
 use crate::progress::Bars;
 use crate::techniques;
 use anyhow::{bail, Context, Result};
-use relight_render::convergence::{
-    classify_receivers, visible_receivers, Measurement, ReceiverClass, ReferenceSet,
-};
+use relight_render::convergence::{Measurement, ReceiverClass, ReferenceSet, Split, TILE};
+use relight_render::metrics::tile_ratio_image;
 use relight_render::study::split_top_level;
 use relight_technique::{Frame, SceneContext};
 use relight_trace::path::PathSettings;
@@ -48,7 +47,9 @@ pub struct ConvergeSettings {
     /// Folder for cached references (default: the system's temporary folder).
     #[arg(long)]
     pub cache: Option<PathBuf>,
-    /// Write the indirect-only images of the reference and of every setting here.
+    /// Write the indirect-only images of the reference and of every setting
+    /// here, with a map of each setting's 8x8-tile light ratio (red: too
+    /// bright, blue: too dark, full colour at twice or half).
     #[arg(long)]
     pub images: Option<PathBuf>,
     /// Also write the results as JSON.
@@ -128,8 +129,8 @@ pub fn run(
         std::fs::create_dir_all(folder)
             .with_context(|| format!("{}: cannot create the images folder", folder.display()))?;
     }
-    let visible = visible_receivers(context);
-    let classes = classify_receivers(context);
+    let split = Split::of(context);
+    let visible = &split.visible;
     let mut references: BTreeMap<u32, ReferenceSet> = BTreeMap::new();
     let lights = context.scene.lights.clone();
     let mut rows = Vec::new();
@@ -188,8 +189,7 @@ pub fn run(
             context,
             instance.as_ref(),
             reference,
-            &visible,
-            &classes,
+            &split,
             settings.spp,
             &bars,
         );
@@ -204,6 +204,10 @@ pub fn run(
                 Some(exposure),
             )?;
             image.write(&folder.join(format!("{index:02}-indirect.exr")), None)?;
+            tile_ratio_image(&image, &reference.image, TILE, 1.0).write(
+                &folder.join(format!("{index:02}-tile-ratio.png")),
+                Some(1.0),
+            )?;
         }
         rows.push(Row {
             setting,
@@ -218,7 +222,7 @@ pub fn run(
         kind.name(),
         settings,
         &references,
-        &visible,
+        visible,
         &rows,
     )?;
     if let Some(path) = &settings.markdown {
@@ -231,7 +235,7 @@ pub fn run(
             kind.name(),
             settings,
             &references,
-            &visible,
+            visible,
             &rows,
         );
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
@@ -296,6 +300,29 @@ fn markdown(
             row.bake_seconds,
             row.update_ms
         )?;
+    }
+    if let Some(first) = rows.first().filter(|row| row.measurement.back_pixels > 0) {
+        writeln!(
+            out,
+            "\nPixels that see back faces (answered as points in space): {}.\n",
+            first.measurement.back_pixels
+        )?;
+        writeln!(
+            out,
+            "| setting | share of the image's squared error | relRMSE there | light ratio there |"
+        )?;
+        writeln!(out, "|---|---:|---:|---:|")?;
+        for row in rows {
+            let m = &row.measurement;
+            writeln!(
+                out,
+                "| {} | {} | {} | {:.3}x |",
+                row.setting,
+                percent(m.back_share),
+                percent(m.back_relative_rmse),
+                m.back_light_ratio
+            )?;
+        }
     }
     if rows.iter().any(|row| !row.measurement.classes.is_empty()) {
         writeln!(out, "\nLightmap error by receiver class (share of the squared error, relRMSE within the class, light against the reference's):\n")?;
@@ -374,6 +401,10 @@ fn json(
                 "image": number(m.image),
                 "image_tiles": number(m.image_tiles),
                 "light_ratio": number(m.light_ratio),
+                "back_facing_pixels": m.back_pixels,
+                "back_facing_share": number(m.back_share),
+                "back_facing_relative_rmse": number(m.back_relative_rmse),
+                "back_facing_light_ratio": number(m.back_light_ratio),
                 "classes": m.classes.iter().map(|class| serde_json::json!({
                     "class": class.class.name(),
                     "receivers": class.receivers,

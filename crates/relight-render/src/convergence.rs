@@ -230,6 +230,29 @@ pub fn visible_receivers(context: &SceneContext) -> Vec<bool> {
     visible
 }
 
+/// Pixels whose centre ray meets the back of a triangle: the lightmap
+/// holds front sides, so techniques answer these through
+/// `indirect_irradiance_in_space`, a path of its own worth measuring apart.
+pub fn back_facing_pixels(context: &SceneContext) -> Vec<bool> {
+    let camera = CameraRays::new(&context.scene.camera);
+    let mesh = &context.scene.mesh;
+    (0..camera.height * camera.width)
+        .into_par_iter()
+        .map(|pixel| {
+            let ray = camera.ray(
+                pixel % camera.width,
+                pixel / camera.width,
+                glam::Vec2::splat(0.5),
+            );
+            context.bvh.intersect(&ray).is_some_and(|hit| {
+                mesh.geometric_normal(hit.triangle as usize)
+                    .dot(ray.direction)
+                    >= 0.0
+            })
+        })
+        .collect()
+}
+
 /// What kind of place a receiver stands in, for splitting a technique's
 /// error by cause.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -331,6 +354,26 @@ pub fn classify_receivers(context: &SceneContext) -> Vec<ReceiverClass> {
         .collect()
 }
 
+/// How a scene's receivers and pixels divide for a study, computed once:
+/// which receivers the camera sees, each receiver's class, and which
+/// pixels see back faces.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Split {
+    pub visible: Vec<bool>,
+    pub classes: Vec<ReceiverClass>,
+    pub back_facing: Vec<bool>,
+}
+
+impl Split {
+    pub fn of(context: &SceneContext) -> Self {
+        Self {
+            visible: visible_receivers(context),
+            classes: classify_receivers(context),
+            back_facing: back_facing_pixels(context),
+        }
+    }
+}
+
 /// One class's part of a lightmap error.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ClassError {
@@ -356,6 +399,12 @@ pub struct Measurement {
     /// Total indirect light in the camera image against the reference's.
     pub light_ratio: f64,
     pub classes: Vec<ClassError>,
+    /// Pixels that see back faces: how many, their share of the image's
+    /// squared error, their relRMSE and light ratio.
+    pub back_pixels: usize,
+    pub back_share: f64,
+    pub back_relative_rmse: f64,
+    pub back_light_ratio: f64,
 }
 
 impl Measurement {
@@ -365,11 +414,11 @@ impl Measurement {
         context: &SceneContext,
         technique: &dyn Technique,
         reference: &ReferenceSet,
-        visible: &[bool],
-        classes: &[ReceiverClass],
+        split: &Split,
         spp: u32,
         progress: &dyn Progress,
     ) -> (Self, Image) {
+        let (visible, classes, back_facing) = (&split.visible, &split.classes, &split.back_facing);
         let renders =
             render_with_technique(context, &context.scene.lights, technique, spp, 1, progress);
         let image = renders.indirect;
@@ -423,6 +472,37 @@ impl Measurement {
             .relative_rmse,
             light_ratio: light_ratio(&image.pixels, &reference.image.pixels),
             classes,
+            back_pixels: back_facing.iter().filter(|&&back| back).count(),
+            back_share: {
+                let squared = |keep: &dyn Fn(usize) -> bool| -> f64 {
+                    (0..image.pixels.len())
+                        .filter(|&i| keep(i))
+                        .map(|i| {
+                            (image.pixels[i] - reference.image.pixels[i]).length_squared() as f64
+                        })
+                        .sum()
+                };
+                let total = squared(&|_| true);
+                if total > 0.0 {
+                    squared(&|i| back_facing[i]) / total
+                } else {
+                    0.0
+                }
+            },
+            back_relative_rmse: error_norms_where(&image.pixels, &reference.image.pixels, |i| {
+                back_facing[i]
+            })
+            .relative_rmse,
+            back_light_ratio: {
+                let pick = |list: &[Rgb]| -> Vec<Rgb> {
+                    list.iter()
+                        .zip(back_facing)
+                        .filter(|(_, &back)| back)
+                        .map(|(value, _)| *value)
+                        .collect()
+                };
+                light_ratio(&pick(&image.pixels), &pick(&reference.image.pixels))
+            },
         };
         (measurement, image)
     }

@@ -146,6 +146,39 @@ pub fn error_image(values: &Image, reference: &Image, full_scale: f32) -> Image 
     }
 }
 
+/// Where a technique is too bright or too dark, at the scale of `tile`
+/// pixel blocks: each tile's log2 ratio of luminance to the reference's,
+/// red where brighter, blue where darker, full colour at `stops` stops
+/// (1 = twice or half the light), black where the reference is black.
+/// Written as PNG with exposure 1 (the colours are already display values).
+pub fn tile_ratio_image(values: &Image, reference: &Image, tile: u32, stops: f32) -> Image {
+    let tile = tile.max(1);
+    let columns = values.width.div_ceil(tile) as usize;
+    let technique = tile_means(values, tile);
+    let truth = tile_means(reference, tile);
+    let mut image = Image::new(values.width, values.height);
+    for y in 0..values.height {
+        for x in 0..values.width {
+            let index = (y / tile) as usize * columns + (x / tile) as usize;
+            let (value, truth) = (luminance(technique[index]), luminance(truth[index]));
+            let colour = if truth <= 0.0 {
+                Rgb::ZERO
+            } else {
+                let ratio = (value.max(truth * 1e-3) / truth).log2() / stops.max(1e-3);
+                let strength = ratio.abs().min(1.0);
+                let hue = if ratio > 0.0 {
+                    Rgb::new(1.0, 0.1, 0.05)
+                } else {
+                    Rgb::new(0.05, 0.2, 1.0)
+                };
+                Rgb::splat(0.9).lerp(hue, strength)
+            };
+            image.pixels[(y * values.width + x) as usize] = colour;
+        }
+    }
+    image
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
