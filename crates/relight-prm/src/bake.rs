@@ -13,7 +13,7 @@ use relight_technique::{Progress, SceneContext, TechniqueError};
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 2;
+const PAYLOAD_VERSION: u32 = 3;
 
 /// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
 pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
@@ -28,6 +28,15 @@ pub struct PrmBake {
     pub entry_normals: Vec<Vec3>,
     /// Cluster of each entry point.
     pub entry_clusters: Vec<u32>,
+    /// Each entry point's share of its cluster's weight: its own pane's
+    /// total luminance over the cluster pane's (equal shares where the pane
+    /// is black); they sum to 1. The cluster's weight is its entries'
+    /// irradiance averaged with these shares, which gives the cluster's
+    /// total light exactly however unevenly its entries are lit. The plain
+    /// mean (the paper's) gives every entry the same say, so a sunlit entry
+    /// outside a wall, whose light escapes, lends its irradiance to the dim
+    /// entries inside whose light the pane carries.
+    pub entry_shares: Vec<f32>,
     pub cluster_count: usize,
     /// Mean position and normal of each cluster (for points in space).
     pub cluster_centres: Vec<Vec3>,
@@ -106,11 +115,14 @@ impl PrmBake {
         let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
         progress.start("prm panes", params.clusters as u64);
         let mut panes = vec![f16::ZERO; params.clusters as usize * receiver_count * 3];
-        panes
+        // Each entry's share of its cluster's weight: the total luminance
+        // of its own pane over the cluster pane's.
+        let shares_per_cluster: Vec<Vec<f32>> = panes
             .par_chunks_mut(receiver_count * 3)
             .zip(members.par_iter())
-            .for_each(|(pane_out, cluster_members)| {
+            .map(|(pane_out, cluster_members)| {
                 let mut pane = vec![Rgb::ZERO; receiver_count];
+                let mut own_totals: Vec<f64> = Vec::with_capacity(cluster_members.len());
                 for &entry in cluster_members {
                     let lights = light_path_vertices(
                         context,
@@ -120,9 +132,14 @@ impl PrmBake {
                         params,
                         epsilon,
                     );
-                    for light in &lights {
-                        gather(context, light, disc_radius_squared, epsilon, &mut pane);
-                    }
+                    own_totals.push(
+                        lights
+                            .iter()
+                            .map(|light| {
+                                gather(context, light, disc_radius_squared, epsilon, &mut pane)
+                            })
+                            .sum(),
+                    );
                 }
                 for (out, value) in pane_out.chunks_exact_mut(3).zip(&pane) {
                     out[0] = f16::from_f32(value.x);
@@ -130,8 +147,26 @@ impl PrmBake {
                     out[2] = f16::from_f32(value.z);
                 }
                 progress.advance(1);
-            });
+                let total: f64 = own_totals.iter().sum();
+                own_totals
+                    .iter()
+                    .map(|own| {
+                        if total > 0.0 {
+                            (own / total) as f32
+                        } else {
+                            1.0 / cluster_members.len() as f32
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
         progress.finish();
+        let mut entry_shares = vec![0.0f32; entries.positions.len()];
+        for (cluster_members, shares) in members.iter().zip(&shares_per_cluster) {
+            for (&entry, &share) in cluster_members.iter().zip(shares) {
+                entry_shares[entry as usize] = share;
+            }
+        }
 
         let mut cluster_reflectance_area = vec![Rgb::ZERO; params.clusters as usize];
         for (entry, &cluster) in clustering.assignment.iter().enumerate() {
@@ -162,6 +197,7 @@ impl PrmBake {
             entry_positions: entries.positions,
             entry_normals: entries.normals,
             entry_clusters: clustering.assignment,
+            entry_shares,
             cluster_count: params.clusters as usize,
             cluster_centres: clustering.centres,
             cluster_normals: clustering.normals,
@@ -218,7 +254,7 @@ impl PrmBake {
             .par_iter()
             .map(|light| {
                 let mut pane = vec![Rgb::ZERO; receivers];
-                gather(context, light, disc_radius_squared, epsilon, &mut pane);
+                let _ = gather(context, light, disc_radius_squared, epsilon, &mut pane);
                 pane
             })
             .collect();
@@ -259,6 +295,9 @@ impl PrmBake {
         for cluster in &self.entry_clusters {
             bytes.extend_from_slice(&cluster.to_le_bytes());
         }
+        for share in &self.entry_shares {
+            bytes.extend_from_slice(&share.to_le_bytes());
+        }
         for value in &self.coefficients {
             bytes.extend_from_slice(&value.to_le_bytes());
         }
@@ -291,7 +330,7 @@ impl PrmBake {
             .checked_mul(receiver_count)
             .and_then(|count| count.checked_mul(3))
             .ok_or_else(|| corrupt("pane size overflows"))?;
-        let needed = entry_count as u128 * (12 * 2 + 4)
+        let needed = entry_count as u128 * (12 * 2 + 4 + 4)
             + cluster_count as u128 * 36
             + cluster_count as u128 * rank as u128 * 4
             + pane_values as u128 * 2;
@@ -314,6 +353,15 @@ impl PrmBake {
                 "an entry point names a cluster that does not exist",
             ));
         }
+        let entry_shares = (0..entry_count)
+            .map(|_| reader.f32())
+            .collect::<Result<Vec<_>, _>>()?;
+        if entry_shares
+            .iter()
+            .any(|share| !(share.is_finite() && *share >= 0.0))
+        {
+            return Err(corrupt("an entry point's share is not a finite fraction"));
+        }
         let coefficients = (0..cluster_count * rank)
             .map(|_| reader.f32())
             .collect::<Result<Vec<_>, _>>()?;
@@ -335,6 +383,7 @@ impl PrmBake {
             entry_positions,
             entry_normals,
             entry_clusters,
+            entry_shares,
             cluster_count,
             cluster_centres,
             cluster_normals,
@@ -637,16 +686,18 @@ fn light_path_vertices(
 }
 
 /// Adds one virtual light's irradiance at every receiver (shadow rays),
-/// with the disc guard: E = flux / pi * cos_l cos_x / (d^2 + r^2).
+/// with the disc guard: E = flux / pi * cos_l cos_x / (d^2 + r^2), and
+/// returns the luminance it added over all receivers.
 fn gather(
     context: &SceneContext,
     light: &VirtualLight,
     disc_radius_squared: f32,
     epsilon: f32,
     pane: &mut [Rgb],
-) {
+) -> f64 {
     let receivers = &context.atlas.receivers;
     let origin = light.position + light.normal * epsilon;
+    let mut added = 0.0f64;
     for (index, value) in pane.iter_mut().enumerate() {
         let position = receivers.positions[index];
         let normal = receivers.normals[index];
@@ -668,6 +719,9 @@ fn gather(
         // cosines were not normalised: divide by d^2 once more.
         let geometry = cosine_receiver * cosine_light
             / (distance_squared * (distance_squared + disc_radius_squared));
-        *value += light.flux * (geometry * std::f32::consts::FRAC_1_PI);
+        let contribution = light.flux * (geometry * std::f32::consts::FRAC_1_PI);
+        *value += contribution;
+        added += luminance(contribution) as f64;
     }
+    added
 }

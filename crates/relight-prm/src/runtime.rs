@@ -33,8 +33,6 @@ pub struct Prm {
     /// area lights than a lightmap texel gets, since a cluster's weight
     /// averages its entries.
     entry_direct: DirectSettings,
-    /// Entry points per cluster (fixed by the bake).
-    cluster_sizes: Vec<u32>,
     /// Per cluster, the factor its weight's luminance is ranked by: 1 for
     /// the paper's ranking by weight, the pane's total luminance for ranking
     /// by contribution.
@@ -44,7 +42,8 @@ pub struct Prm {
 /// How the top-K clusters are chosen each frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Selection {
-    /// By weight (mean entry irradiance), as the paper does.
+    /// By weight (the entries' irradiance, averaged by their shares), as
+    /// the paper does.
     Weight,
     /// By weight times the pane's total luminance: the light the cluster
     /// would add to the lightmap.
@@ -59,7 +58,6 @@ impl Prm {
         selection: Selection,
         entry_area_samples: u32,
     ) -> Self {
-        let cluster_sizes = bake.cluster_sizes();
         let ranking_scale = match selection {
             Selection::Weight => vec![1.0; bake.cluster_count],
             Selection::Contribution => {
@@ -117,7 +115,6 @@ impl Prm {
             bake,
             top_k,
             timings: StageTimings::default(),
-            cluster_sizes,
             ranking_scale,
         }
     }
@@ -246,16 +243,19 @@ impl Technique for Prm {
         let weights = &mut self.cluster_weights;
         let selected = &mut self.selected;
         let top_k = self.top_k;
-        let (sizes, scale) = (&self.cluster_sizes, &self.ranking_scale);
+        let scale = &self.ranking_scale;
         self.timings.time("weights and top-K", || {
             weights.fill(Rgb::ZERO);
-            for (entry, &cluster) in bake.entry_clusters.iter().enumerate() {
-                weights[cluster as usize] += entry_irradiance[entry];
-            }
             // The pane holds the sum over its entries, so the common weight
-            // is their mean irradiance.
-            for (weight, &size) in weights.iter_mut().zip(sizes) {
-                *weight /= size.max(1) as f32;
+            // is their irradiance averaged with each entry's share of the
+            // pane: exact in total light, however unevenly they are lit.
+            for ((&cluster, &share), &irradiance) in bake
+                .entry_clusters
+                .iter()
+                .zip(&bake.entry_shares)
+                .zip(entry_irradiance.iter())
+            {
+                weights[cluster as usize] += irradiance * share;
             }
             selected.clear();
             selected.extend(0..bake.cluster_count as u32);
