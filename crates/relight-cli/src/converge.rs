@@ -218,6 +218,7 @@ pub fn run(
         });
     }
     let report = markdown(
+        split.space.positions.len(),
         scene_path,
         kind.name(),
         settings,
@@ -252,7 +253,9 @@ fn percent(value: f64) -> String {
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn markdown(
+    space_points: usize,
     scene_path: &Path,
     technique: &str,
     settings: &ConvergeSettings,
@@ -264,9 +267,10 @@ fn markdown(
     writeln!(out, "### {technique} on {}\n", scene_path.display())?;
     writeln!(
         out,
-        "{} receivers, {} seen by the camera; reference: {} paths per receiver, {} per pixel, seed {}.\n",
+        "{} receivers, {} seen by the camera, {} points in space (a grid over the bounds, six normals each); reference: {} paths per receiver and point, {} per pixel, seed {}.\n",
         visible.len(),
         visible.iter().filter(|&&seen| seen).count(),
+        space_points,
         settings.reference_samples,
         settings.reference_spp,
         settings.seed
@@ -275,21 +279,25 @@ fn markdown(
         let noise = reference.noise(visible);
         writeln!(
             out,
-            "Reference noise at {bounces} bounces: lightmap {}, visible lightmap {}, image {}, image 8x8 tiles {}.",
+            "Reference noise at {bounces} bounces: lightmap {}, visible lightmap {}, image {}, image 8x8 tiles {}, points in space {}.",
             percent(noise.lightmap),
             percent(noise.visible_lightmap),
             percent(noise.image),
-            percent(noise.image_tiles)
+            percent(noise.image_tiles),
+            percent(noise.space)
         )?;
     }
     writeln!(out)?;
-    writeln!(out, "| setting | bounces | lightmap relRMSE | visible lightmap | image relRMSE | image 8x8 tiles | light ratio | bake s | update ms |")?;
-    writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|---:|")?;
+    writeln!(out, "| setting | bounces | lightmap relRMSE | visible lightmap | image relRMSE | image 8x8 tiles | light ratio | points in space | their light | bake s | update ms |")?;
+    writeln!(
+        out,
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )?;
     for row in rows {
         let m = &row.measurement;
         writeln!(
             out,
-            "| {} | {} | {} | {} | {} | {} | {:.3}x | {:.1} | {:.2} |",
+            "| {} | {} | {} | {} | {} | {} | {:.3}x | {} | {:.3}x | {:.1} | {:.2} |",
             row.setting,
             row.bounces,
             percent(m.lightmap),
@@ -297,6 +305,8 @@ fn markdown(
             percent(m.image),
             percent(m.image_tiles),
             m.light_ratio,
+            percent(m.space),
+            m.space_light_ratio,
             row.bake_seconds,
             row.update_ms
         )?;
@@ -387,6 +397,7 @@ fn json(
                 "visible_lightmap": number(noise.visible_lightmap),
                 "image": number(noise.image),
                 "image_tiles": number(noise.image_tiles),
+                "space": number(noise.space),
             })
         }).collect::<Vec<_>>(),
         "settings": rows.iter().map(|row| {
@@ -401,6 +412,8 @@ fn json(
                 "image": number(m.image),
                 "image_tiles": number(m.image_tiles),
                 "light_ratio": number(m.light_ratio),
+                "space": number(m.space),
+                "space_light_ratio": number(m.space_light_ratio),
                 "back_facing_pixels": m.back_pixels,
                 "back_facing_share": number(m.back_share),
                 "back_facing_relative_rmse": number(m.back_relative_rmse),

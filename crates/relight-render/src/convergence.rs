@@ -15,7 +15,9 @@ use crate::render::{render_reference, render_with_technique};
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, stratified_square};
 use relight_core::Rgb;
-use relight_technique::{reference_receiver_irradiance, Progress, SceneContext, Technique};
+use relight_technique::{
+    reference_irradiance_at, reference_receiver_irradiance, Progress, SceneContext, Technique,
+};
 use relight_trace::bvh::Ray;
 use relight_trace::path::{CameraRays, PathSettings};
 use std::path::Path;
@@ -33,6 +35,58 @@ pub struct ReferenceSet {
     /// Indirect-only camera image and its per-pixel standard error.
     pub image: Image,
     pub image_error: Image,
+    /// Indirect irradiance at [`SpacePoints`] and its standard error.
+    pub space: Vec<Rgb>,
+    pub space_error: Vec<Rgb>,
+}
+
+/// Points in space where dynamic objects could stand: a grid over the
+/// scene's bounds (inset by half a cell), those inside geometry left out,
+/// each with the six axis normals.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpacePoints {
+    pub positions: Vec<glam::Vec3>,
+    pub normals: Vec<glam::Vec3>,
+}
+
+/// Grid cells of [`SpacePoints`]: about 8 x 8 x 8 over the bounds.
+const SPACE_CELLS: f32 = 512.0;
+
+impl SpacePoints {
+    pub fn of(context: &SceneContext) -> Self {
+        let (lo, hi) = context.scene.mesh.bounds();
+        let extent = (hi - lo).max(glam::Vec3::splat(1e-3));
+        let cell = (extent.x * extent.y * extent.z / SPACE_CELLS).cbrt();
+        let dims = (extent / cell).ceil().max(glam::Vec3::ONE).as_uvec3();
+        let step = extent / dims.as_vec3();
+        let mut points = Self {
+            positions: Vec::new(),
+            normals: Vec::new(),
+        };
+        let axes = [
+            glam::Vec3::X,
+            glam::Vec3::NEG_X,
+            glam::Vec3::Y,
+            glam::Vec3::NEG_Y,
+            glam::Vec3::Z,
+            glam::Vec3::NEG_Z,
+        ];
+        for z in 0..dims.z {
+            for y in 0..dims.y {
+                for x in 0..dims.x {
+                    let position = lo + (glam::UVec3::new(x, y, z).as_vec3() + 0.5) * step;
+                    if context.is_inside_geometry(position) {
+                        continue;
+                    }
+                    for normal in axes {
+                        points.positions.push(position);
+                        points.normals.push(normal);
+                    }
+                }
+            }
+        }
+        points
+    }
 }
 
 /// A 64-bit FNV-1a over bytes: cache keys, not security.
@@ -83,8 +137,10 @@ impl ReferenceSet {
         let receivers = context.atlas.receivers.len();
         let [width, height] = context.scene.camera.resolution;
         let pixels = (width * height) as usize;
+        let space_points = SpacePoints::of(context);
+        let points = space_points.positions.len();
         if let Some(values) = file.as_ref().and_then(|file| std::fs::read(file).ok()) {
-            if values.len() == (receivers + pixels) * 2 * 12 {
+            if values.len() == (receivers + pixels + points) * 2 * 12 {
                 let mut floats = values
                     .chunks_exact(4)
                     .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
@@ -100,6 +156,8 @@ impl ReferenceSet {
                 let lightmap_error = take(receivers);
                 let image = take(pixels);
                 let image_error = take(pixels);
+                let space = take(points);
+                let space_error = take(points);
                 let as_image = |pixels| Image {
                     width,
                     height,
@@ -110,25 +168,40 @@ impl ReferenceSet {
                     lightmap_error,
                     image: as_image(image),
                     image_error: as_image(image_error),
+                    space,
+                    space_error,
                 };
             }
         }
         let lights = &context.scene.lights;
         let traced = reference_receiver_irradiance(context, lights, settings, samples, progress);
         let renders = render_reference(context, lights, settings, spp, progress);
+        let space = reference_irradiance_at(
+            context,
+            lights,
+            settings,
+            samples,
+            &space_points.positions,
+            &space_points.normals,
+            progress,
+        );
         let set = Self {
             lightmap: traced.mean,
             lightmap_error: traced.standard_error,
             image: renders.indirect,
             image_error: renders.indirect_standard_error,
+            space: space.mean,
+            space_error: space.standard_error,
         };
         if let Some(file) = file {
-            let mut bytes = Vec::with_capacity((receivers + pixels) * 24);
+            let mut bytes = Vec::with_capacity((receivers + pixels + points) * 24);
             for list in [
                 &set.lightmap,
                 &set.lightmap_error,
                 &set.image.pixels,
                 &set.image_error.pixels,
+                &set.space,
+                &set.space_error,
             ] {
                 for value in list.iter() {
                     for component in value.to_array() {
@@ -172,6 +245,7 @@ impl ReferenceSet {
             visible_lightmap: relative_noise(&pick(&self.lightmap), &pick(&self.lightmap_error)),
             image: relative_noise(&self.image.pixels, &self.image_error.pixels),
             image_tiles: relative_noise(&tile_means(&self.image, TILE), &tile_error),
+            space: relative_noise(&self.space, &self.space_error),
         }
     }
 }
@@ -184,6 +258,7 @@ pub struct Noise {
     pub visible_lightmap: f64,
     pub image: f64,
     pub image_tiles: f64,
+    pub space: f64,
 }
 
 /// Receivers whose texels a camera pixel reads from the front (2x2 primary
@@ -362,6 +437,7 @@ pub struct Split {
     pub visible: Vec<bool>,
     pub classes: Vec<ReceiverClass>,
     pub back_facing: Vec<bool>,
+    pub space: SpacePoints,
 }
 
 impl Split {
@@ -370,6 +446,7 @@ impl Split {
             visible: visible_receivers(context),
             classes: classify_receivers(context),
             back_facing: back_facing_pixels(context),
+            space: SpacePoints::of(context),
         }
     }
 }
@@ -405,6 +482,10 @@ pub struct Measurement {
     pub back_share: f64,
     pub back_relative_rmse: f64,
     pub back_light_ratio: f64,
+    /// `indirect_irradiance_in_space` at the [`SpacePoints`]: relRMSE and
+    /// total light against the path tracer's.
+    pub space: f64,
+    pub space_light_ratio: f64,
 }
 
 impl Measurement {
@@ -422,6 +503,13 @@ impl Measurement {
         let renders =
             render_with_technique(context, &context.scene.lights, technique, spp, 1, progress);
         let image = renders.indirect;
+        let space: Vec<Rgb> = split
+            .space
+            .positions
+            .par_iter()
+            .zip(&split.space.normals)
+            .map(|(&position, &normal)| technique.indirect_irradiance_in_space(position, normal))
+            .collect();
         let receivers = technique
             .receiver_irradiance()
             .filter(|values| values.len() == reference.lightmap.len());
@@ -472,6 +560,8 @@ impl Measurement {
             .relative_rmse,
             light_ratio: light_ratio(&image.pixels, &reference.image.pixels),
             classes,
+            space: error_norms(&space, &reference.space).relative_rmse,
+            space_light_ratio: light_ratio(&space, &reference.space),
             back_pixels: back_facing.iter().filter(|&&back| back).count(),
             back_share: {
                 let squared = |keep: &dyn Fn(usize) -> bool| -> f64 {

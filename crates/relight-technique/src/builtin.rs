@@ -145,9 +145,31 @@ pub fn reference_receiver_irradiance(
     samples: u32,
     progress: &dyn Progress,
 ) -> ReferenceLightmap {
-    let direct = context.direct();
     let receivers = &context.atlas.receivers;
-    let count = receivers.len();
+    reference_irradiance_at(
+        context,
+        lights,
+        settings,
+        samples,
+        &receivers.positions,
+        &receivers.normals,
+        progress,
+    )
+}
+
+/// The same estimate at any surface points: `positions` with the side
+/// `normals` faces (points in space for dynamic objects, too).
+pub fn reference_irradiance_at(
+    context: &SceneContext,
+    lights: &[Light],
+    settings: PathSettings,
+    samples: u32,
+    positions: &[glam::Vec3],
+    normals: &[glam::Vec3],
+    progress: &dyn Progress,
+) -> ReferenceLightmap {
+    let direct = context.direct();
+    let count = positions.len();
     let half = (samples / 2).max(1);
     // Passes of 16 samples keep the progress bar moving; the sum is the
     // same as one pass because every sample has its own stream.
@@ -159,15 +181,8 @@ pub fn reference_receiver_irradiance(
         let mut done = 0u32;
         while done < half {
             let this_pass = pass.min(half - done);
-            tracer.indirect_irradiance_sums(
-                lights,
-                &receivers.positions,
-                &receivers.normals,
-                done,
-                this_pass,
-                half,
-                sums,
-            );
+            tracer
+                .indirect_irradiance_sums(lights, positions, normals, done, this_pass, half, sums);
             done += this_pass;
             progress.advance(this_pass as u64);
         }

@@ -24,7 +24,8 @@ pub use bakefile::{
     read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,
 };
 pub use builtin::{
-    reference_receiver_irradiance, DirectKind, ReferenceKind, ReferenceLightmap, ReferenceParams,
+    reference_irradiance_at, reference_receiver_irradiance, DirectKind, ReferenceKind,
+    ReferenceLightmap, ReferenceParams,
 };
 pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
 pub use interface::*;
