@@ -270,7 +270,13 @@ fn converge_sweeps_and_caches_a_reference_per_light_set() {
     let row = &report["settings"][0];
     // `direct` brings no indirect light: every error is exactly 100 % and
     // the light ratio 0, whatever the reference's noise.
-    for key in ["lightmap", "visible_lightmap", "image", "image_tiles", "space"] {
+    for key in [
+        "lightmap",
+        "visible_lightmap",
+        "image",
+        "image_tiles",
+        "space",
+    ] {
         assert!(
             (row[key].as_f64().unwrap() - 1.0).abs() < 1e-9,
             "{key}: {row}"

@@ -13,7 +13,7 @@ use relight_technique::{Progress, SceneContext, TechniqueError};
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 3;
+const PAYLOAD_VERSION: u32 = 4;
 
 /// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
 pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
@@ -38,14 +38,6 @@ pub struct PrmBake {
     /// entries inside whose light the pane carries.
     pub entry_shares: Vec<f32>,
     pub cluster_count: usize,
-    /// Mean position and normal of each cluster (for points in space).
-    pub cluster_centres: Vec<Vec3>,
-    pub cluster_normals: Vec<Vec3>,
-    /// Sum over the cluster's entries of albedo times represented area: the
-    /// flux per unit irradiance its entry points reflect.
-    pub cluster_reflectance_area: Vec<Rgb>,
-    /// Disc radius squared of one entry point's area (singularity guard).
-    pub disc_radius_squared: f32,
     /// Principal components kept (0: the panes are stored as they are).
     pub rank: usize,
     /// With compression, `coefficients[cluster * rank + j]`: cluster pane ~
@@ -96,7 +88,7 @@ impl PrmBake {
         let entries = sample_entries(scene, params.entries as usize)?;
         let (lo, hi) = scene.mesh.bounds();
         let diagonal = (hi - lo).length().max(1e-6);
-        let clustering = cluster_entries(
+        let entry_clusters = cluster_entries(
             &entries.positions,
             &entries.normals,
             params.clusters as usize,
@@ -109,7 +101,7 @@ impl PrmBake {
 
         // Members of each cluster, in entry order, for deterministic sums.
         let mut members: Vec<Vec<u32>> = vec![Vec::new(); params.clusters as usize];
-        for (entry, &cluster) in clustering.assignment.iter().enumerate() {
+        for (entry, &cluster) in entry_clusters.iter().enumerate() {
             members[cluster as usize].push(entry as u32);
         }
         let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
@@ -168,10 +160,6 @@ impl PrmBake {
             }
         }
 
-        let mut cluster_reflectance_area = vec![Rgb::ZERO; params.clusters as usize];
-        for (entry, &cluster) in clustering.assignment.iter().enumerate() {
-            cluster_reflectance_area[cluster as usize] += entries.albedos[entry] * area_per_entry;
-        }
         let (rank, coefficients, captured_energy) =
             if params.rank > 0 && (params.rank as usize) < params.clusters as usize {
                 progress.start("prm compression", 1);
@@ -196,13 +184,9 @@ impl PrmBake {
             receiver_count,
             entry_positions: entries.positions,
             entry_normals: entries.normals,
-            entry_clusters: clustering.assignment,
+            entry_clusters,
             entry_shares,
             cluster_count: params.clusters as usize,
-            cluster_centres: clustering.centres,
-            cluster_normals: clustering.normals,
-            cluster_reflectance_area,
-            disc_radius_squared,
             rank,
             coefficients,
             captured_energy,
@@ -278,7 +262,6 @@ impl PrmBake {
         put_u32(&mut bytes, self.entry_positions.len() as u32);
         put_u32(&mut bytes, self.cluster_count as u32);
         put_u32(&mut bytes, self.rank as u32);
-        bytes.extend_from_slice(&self.disc_radius_squared.to_le_bytes());
         bytes.extend_from_slice(&self.captured_energy.to_le_bytes());
         let put_vectors = |bytes: &mut Vec<u8>, values: &[Vec3]| {
             for value in values {
@@ -289,9 +272,6 @@ impl PrmBake {
         };
         put_vectors(&mut bytes, &self.entry_positions);
         put_vectors(&mut bytes, &self.entry_normals);
-        put_vectors(&mut bytes, &self.cluster_centres);
-        put_vectors(&mut bytes, &self.cluster_normals);
-        put_vectors(&mut bytes, &self.cluster_reflectance_area);
         for cluster in &self.entry_clusters {
             bytes.extend_from_slice(&cluster.to_le_bytes());
         }
@@ -319,7 +299,6 @@ impl PrmBake {
         let entry_count = reader.u32()? as usize;
         let cluster_count = reader.u32()? as usize;
         let rank = reader.u32()? as usize;
-        let disc_radius_squared = reader.f32()?;
         let captured_energy = reader.f32()?;
         if rank >= cluster_count && rank != 0 {
             return Err(corrupt("more basis panes than clusters"));
@@ -331,7 +310,6 @@ impl PrmBake {
             .and_then(|count| count.checked_mul(3))
             .ok_or_else(|| corrupt("pane size overflows"))?;
         let needed = entry_count as u128 * (12 * 2 + 4 + 4)
-            + cluster_count as u128 * 36
             + cluster_count as u128 * rank as u128 * 4
             + pane_values as u128 * 2;
         if needed > (bytes.len() - reader.cursor) as u128 {
@@ -339,9 +317,6 @@ impl PrmBake {
         }
         let entry_positions = reader.vectors(entry_count)?;
         let entry_normals = reader.vectors(entry_count)?;
-        let cluster_centres = reader.vectors(cluster_count)?;
-        let cluster_normals = reader.vectors(cluster_count)?;
-        let cluster_reflectance_area = reader.vectors(cluster_count)?;
         let entry_clusters = (0..entry_count)
             .map(|_| reader.u32())
             .collect::<Result<Vec<_>, _>>()?;
@@ -385,10 +360,6 @@ impl PrmBake {
             entry_clusters,
             entry_shares,
             cluster_count,
-            cluster_centres,
-            cluster_normals,
-            cluster_reflectance_area,
-            disc_radius_squared,
             rank,
             coefficients,
             captured_energy,
@@ -470,12 +441,6 @@ pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, Tec
     Ok(entries)
 }
 
-pub(crate) struct Clustering {
-    pub assignment: Vec<u32>,
-    pub centres: Vec<Vec3>,
-    pub normals: Vec<Vec3>,
-}
-
 /// k-means over (position / diagonal, normal * weight), seeded by k-means++
 /// (each seed drawn with probability proportional to its squared distance
 /// from the seeds so far) and a fixed number of Lloyd iterations; a cluster
@@ -493,7 +458,7 @@ pub(crate) fn cluster_entries(
     normal_weight: f32,
     diagonal: f32,
     seed: u64,
-) -> Clustering {
+) -> Vec<u32> {
     let feature = |index: usize| (positions[index] / diagonal, normals[index] * normal_weight);
     let distance = |index: usize, centre: &(Vec3, Vec3)| {
         let (position, normal) = feature(index);
@@ -586,30 +551,7 @@ pub(crate) fn cluster_entries(
             break;
         }
     }
-    let mut position_sums = vec![(Vec3::ZERO, Vec3::ZERO, 0u32); clusters];
-    for (index, &cluster) in assignment.iter().enumerate() {
-        let sum = &mut position_sums[cluster as usize];
-        sum.0 += positions[index];
-        sum.1 += normals[index];
-        sum.2 += 1;
-    }
-    Clustering {
-        assignment,
-        centres: position_sums
-            .iter()
-            .map(|sum| {
-                if sum.2 > 0 {
-                    sum.0 / sum.2 as f32
-                } else {
-                    Vec3::ZERO
-                }
-            })
-            .collect(),
-        normals: position_sums
-            .iter()
-            .map(|sum| sum.1.normalize_or_zero())
-            .collect(),
-    }
+    assignment
 }
 
 /// Virtual lights of the light paths leaving one entry point with unit

@@ -29,6 +29,7 @@
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
 //! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
+//! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `seed` | 1 | |
 //!
 //! Why compression and all clusters by default: the per-frame cost is the
@@ -73,8 +74,13 @@
 //!   of a metre of a lit surface (corners, column bases) get too little.
 //! - Entry points face their triangle's front side; light reaching only the
 //!   back of thin two-sided geometry does not enter the panes.
-//! - Points in space (dynamic objects) get an approximation: one bounce from
-//!   the cluster centres as disc lights, without visibility.
+//! - Points in space (dynamic objects, back faces) gather the light leaving
+//!   the surfaces around them over `space_rays` fixed rays: each hit
+//!   reflects its direct light and the lightmap's indirect light, so the
+//!   answer has every bounce and walls stop light. It costs `space_rays`
+//!   closest-hit rays and as many direct-light evaluations a query; the
+//!   paper has no answer off the lightmap. Back-face hits reflect their
+//!   direct light alone (the lightmap holds front sides).
 
 mod bake;
 mod runtime;
@@ -112,6 +118,7 @@ pub struct PrmParams {
     pub rank: u32,
     pub normal_weight: f32,
     pub max_memory_mib: u64,
+    pub space_rays: u32,
     pub seed: u64,
 }
 
@@ -127,6 +134,7 @@ impl Default for PrmParams {
             rank: 32,
             normal_weight: 0.5,
             max_memory_mib: 2048,
+            space_rays: 64,
             seed: 1,
         }
     }
@@ -144,6 +152,8 @@ impl PrmParams {
             Some("rank must be at most clusters (0 = no compression)")
         } else if self.entry_area_samples == 0 {
             Some("entry_area_samples must be at least 1")
+        } else if self.space_rays == 0 {
+            Some("space_rays must be at least 1")
         } else if self.paths_per_entry == 0 {
             Some("paths_per_entry must be at least 1")
         } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
@@ -208,6 +218,7 @@ impl TechniqueKind for PrmKind {
             params.top_k,
             selection,
             params.entry_area_samples,
+            params.space_rays,
         )))
     }
 }

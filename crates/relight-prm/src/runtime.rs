@@ -7,7 +7,8 @@ use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use relight_core::{luminance, Rgb};
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
+    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
+    TechniqueError,
 };
 use relight_trace::direct::{DirectLight, DirectSettings};
 use std::sync::Arc;
@@ -33,6 +34,9 @@ pub struct Prm {
     /// area lights than a lightmap texel gets, since a cluster's weight
     /// averages its entries.
     entry_direct: DirectSettings,
+    /// The lights of the last update, for gathers at points in space.
+    lights: Vec<relight_scene::Light>,
+    space_gather: SurfaceGather,
     /// Per cluster, the factor its weight's luminance is ranked by: 1 for
     /// the paper's ranking by weight, the pane's total luminance for ranking
     /// by contribution.
@@ -57,6 +61,7 @@ impl Prm {
         top_k: u32,
         selection: Selection,
         entry_area_samples: u32,
+        space_rays: u32,
     ) -> Self {
         let ranking_scale = match selection {
             Selection::Weight => vec![1.0; bake.cluster_count],
@@ -115,6 +120,8 @@ impl Prm {
             bake,
             top_k,
             timings: StageTimings::default(),
+            lights: Vec::new(),
+            space_gather: SurfaceGather::new(space_rays),
             ranking_scale,
         }
     }
@@ -227,6 +234,8 @@ impl Technique for Prm {
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         self.timings.clear();
+        self.lights.clear();
+        self.lights.extend_from_slice(frame.lights);
         let context = &self.context;
         let bake = &self.bake;
         let entry_irradiance = &mut self.entry_irradiance;
@@ -309,24 +318,10 @@ impl Technique for Prm {
     }
 
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
-        // One bounce from each cluster as a disc light of its entries' area,
-        // without visibility: an approximation for dynamic objects.
-        let mut irradiance = Rgb::ZERO;
-        for cluster in 0..self.bake.cluster_count {
-            let offset = self.bake.cluster_centres[cluster] - position;
-            let distance_squared = offset.length_squared();
-            let cosine_receiver = normal.dot(offset);
-            let cosine_light = -self.bake.cluster_normals[cluster].dot(offset);
-            if cosine_receiver <= 0.0 || cosine_light <= 0.0 {
-                continue;
-            }
-            let flux = self.cluster_weights[cluster] * self.bake.cluster_reflectance_area[cluster];
-            irradiance += flux
-                * (cosine_receiver * cosine_light
-                    / (distance_squared * (distance_squared + self.bake.disc_radius_squared))
-                    * std::f32::consts::FRAC_1_PI);
-        }
-        irradiance
+        self.space_gather
+            .irradiance(&self.context, &self.lights, position, normal, |point| {
+                self.indirect_irradiance(point)
+            })
     }
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {

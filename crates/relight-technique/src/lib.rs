@@ -15,6 +15,7 @@
 mod bakefile;
 mod builtin;
 mod context;
+mod gather;
 mod interface;
 mod params;
 mod payload;
@@ -28,6 +29,7 @@ pub use builtin::{
     ReferenceLightmap, ReferenceParams,
 };
 pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
+pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
