@@ -148,25 +148,40 @@ pub fn place_caches(
     grid_dims: Option<[u32; 3]>,
 ) -> CachePlacement {
     let receivers = &atlas.receivers;
-    let lift = 0.05 * atlas.metres_per_texel.max(1e-4);
+    // Where the links' rays start (the bake's link epsilon).
+    let surface_offset = 4.0 * relight_trace::direct::ray_epsilon_for(&context.bvh);
     let placed: Vec<(Vec3, u8)> = (0..receivers.len())
         .into_par_iter()
         .map(|index| {
+            // A cache gathers from where it stands (the link epsilon off
+            // its surface), so that is the point tested. A texel point in a
+            // crack between two meshes (a column shaft entering its
+            // capital) is buried there although most of its texel is in
+            // view: it slides within half a texel toward the middle of its
+            // triangle to the first free spot, or every link would be
+            // hidden and the cache black. A texel that something covers
+            // entirely (the ceiling behind the Cornell box's light) finds
+            // none and stays buried, dark as the path tracer finds it. A
+            // lift off the surface is no way out: it can cross a thin
+            // occluder into the room beyond.
             let position = receivers.positions[index];
             let normal = receivers.normals[index];
-            if !context.is_inside_geometry(position + normal * lift) {
+            let gather_point = |point: Vec3| point + normal * surface_offset;
+            if !context.is_inside_geometry(gather_point(position)) {
                 return (position, 0);
             }
-            // Behind geometry: slide toward the middle of the triangle.
             let triangle = receivers.triangles[index] as usize;
             let corners = context.scene.mesh.vertices(triangle);
             let centroid = (corners[0] + corners[1] + corners[2]) / 3.0;
+            let slide = (centroid - position).clamp_length_max(0.5 * atlas.metres_per_texel);
             for step in 1..=4 {
-                let candidate = position.lerp(centroid, step as f32 / 4.0);
-                if !context.is_inside_geometry(candidate + normal * lift) {
+                let candidate = position + slide * (step as f32 / 4.0);
+                if !context.is_inside_geometry(gather_point(candidate)) {
                     return (candidate, 1);
                 }
             }
+            // No free spot: the cache stays on the surface, buried, and
+            // reads the darkness the path tracer finds there.
             (position, 2)
         })
         .collect();

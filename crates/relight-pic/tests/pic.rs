@@ -431,10 +431,8 @@ fn chroma_grid_and_glossy_lookups() {
 /// the high preset, the bounds: lightmap relRMSE at most 10 %,
 /// indirect-only image at most 15 %. The errors include the reference's own
 /// noise (printed), which only makes the check stricter. Measured with
-/// `relight compare SCENE --techniques pic --set pic.preset=high
-/// --reference-samples 2048 --reference-spp 256`: cornell-box 7.3 / 8.0 %,
-/// cornell-box-point 5.9 / 13.5 %, corridor 9.6 / 14.8 % (lightmap /
-/// image).
+/// this test (2048 paths a receiver, 4096 a pixel): cornell-box 7.5 / 6.4 %,
+/// cornell-box-point 6.1 / 6.6 %, corridor 7.7 / 7.6 % (lightmap / image).
 #[test]
 fn accuracy_against_the_path_tracer() {
     for scene in ["cornell-box", "cornell-box-point", "corridor"] {
