@@ -217,29 +217,22 @@ pub fn run(
             measurement,
         });
     }
-    let report = markdown(
-        split.space.positions.len(),
+    let study = Study {
         scene_path,
-        kind.name(),
+        technique: kind.name(),
         settings,
-        &references,
+        references: &references,
         visible,
-        &rows,
-    )?;
+        space_points: split.space.positions.len(),
+        rows: &rows,
+    };
+    let report = study.markdown()?;
     if let Some(path) = &settings.markdown {
         std::fs::write(path, &report)
             .with_context(|| format!("{}: cannot write the report", path.display()))?;
     }
     if let Some(path) = &settings.json {
-        let json = json(
-            scene_path,
-            kind.name(),
-            settings,
-            &references,
-            visible,
-            &rows,
-        );
-        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+        std::fs::write(path, serde_json::to_string_pretty(&study.json())?)
             .with_context(|| format!("{}: cannot write the JSON report", path.display()))?;
     }
     Ok(report)
@@ -253,19 +246,32 @@ fn percent(value: f64) -> String {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn markdown(
+/// What a study found, for its reports.
+struct Study<'a> {
+    scene_path: &'a Path,
+    technique: &'a str,
+    settings: &'a ConvergeSettings,
+    /// Per bounce count the swept settings needed.
+    references: &'a BTreeMap<u32, ReferenceSet>,
+    visible: &'a [bool],
     space_points: usize,
-    scene_path: &Path,
-    technique: &str,
-    settings: &ConvergeSettings,
-    references: &BTreeMap<u32, ReferenceSet>,
-    visible: &[bool],
-    rows: &[Row],
-) -> Result<String> {
-    let mut out = String::new();
-    writeln!(out, "### {technique} on {}\n", scene_path.display())?;
-    writeln!(
+    rows: &'a [Row],
+}
+
+impl Study<'_> {
+    fn markdown(&self) -> Result<String> {
+        let Study {
+            scene_path,
+            technique,
+            settings,
+            references,
+            visible,
+            space_points,
+            rows,
+        } = *self;
+        let mut out = String::new();
+        writeln!(out, "### {technique} on {}\n", scene_path.display())?;
+        writeln!(
         out,
         "{} receivers, {} seen by the camera, {} points in space (a grid over the bounds, six normals each); reference: {} paths per receiver and point, {} per pixel, seed {}.\n",
         visible.len(),
@@ -275,9 +281,9 @@ fn markdown(
         settings.reference_spp,
         settings.seed
     )?;
-    for (bounces, reference) in references {
-        let noise = reference.noise(visible);
-        writeln!(
+        for (bounces, reference) in references {
+            let noise = reference.noise(visible);
+            writeln!(
             out,
             "Reference noise at {bounces} bounces: lightmap {}, visible lightmap {}, image {}, image 8x8 tiles {}, points in space {}.",
             percent(noise.lightmap),
@@ -286,149 +292,152 @@ fn markdown(
             percent(noise.image_tiles),
             percent(noise.space)
         )?;
-    }
-    writeln!(out)?;
-    writeln!(out, "| setting | bounces | lightmap relRMSE | visible lightmap | image relRMSE | image 8x8 tiles | light ratio | points in space | their light | bake s | update ms |")?;
-    writeln!(
-        out,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
-    )?;
-    for row in rows {
-        let m = &row.measurement;
+        }
+        writeln!(out)?;
+        writeln!(out, "| setting | bounces | lightmap relRMSE | visible lightmap | image relRMSE | image 8x8 tiles | light ratio | points in space | their light | bake s | update ms |")?;
         writeln!(
             out,
-            "| {} | {} | {} | {} | {} | {} | {:.3}x | {} | {:.3}x | {:.1} | {:.2} |",
-            row.setting,
-            row.bounces,
-            percent(m.lightmap),
-            percent(m.visible_lightmap),
-            percent(m.image),
-            percent(m.image_tiles),
-            m.light_ratio,
-            percent(m.space),
-            m.space_light_ratio,
-            row.bake_seconds,
-            row.update_ms
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
         )?;
-    }
-    if let Some(first) = rows.first().filter(|row| row.measurement.back_pixels > 0) {
-        writeln!(
-            out,
-            "\nPixels that see back faces (answered as points in space): {}.\n",
-            first.measurement.back_pixels
-        )?;
-        writeln!(
-            out,
-            "| setting | share of the image's squared error | relRMSE there | light ratio there |"
-        )?;
-        writeln!(out, "|---|---:|---:|---:|")?;
         for row in rows {
             let m = &row.measurement;
             writeln!(
                 out,
-                "| {} | {} | {} | {:.3}x |",
+                "| {} | {} | {} | {} | {} | {} | {:.3}x | {} | {:.3}x | {:.1} | {:.2} |",
                 row.setting,
-                percent(m.back_share),
-                percent(m.back_relative_rmse),
-                m.back_light_ratio
+                row.bounces,
+                percent(m.lightmap),
+                percent(m.visible_lightmap),
+                percent(m.image),
+                percent(m.image_tiles),
+                m.light_ratio,
+                percent(m.space),
+                m.space_light_ratio,
+                row.bake_seconds,
+                row.update_ms
             )?;
         }
-    }
-    if rows.iter().any(|row| !row.measurement.classes.is_empty()) {
-        writeln!(out, "\nLightmap error by receiver class (share of the squared error, relRMSE within the class, light against the reference's):\n")?;
-        write!(out, "| setting |")?;
-        for class in ReceiverClass::ALL {
-            write!(out, " {} |", class.name())?;
-        }
-        writeln!(out)?;
-        writeln!(out, "|---|{}", "---:|".repeat(ReceiverClass::ALL.len()))?;
-        if let Some(first) = rows.iter().find(|row| !row.measurement.classes.is_empty()) {
-            write!(out, "| receivers (seen) |")?;
-            for class in &first.measurement.classes {
-                write!(out, " {} ({}) |", class.receivers, class.visible)?;
-            }
-            writeln!(out)?;
-        }
-        for row in rows {
-            write!(out, "| {} |", row.setting)?;
-            for class in &row.measurement.classes {
-                write!(
+        if let Some(first) = rows.first().filter(|row| row.measurement.back_pixels > 0) {
+            writeln!(
+                out,
+                "\nPixels that see back faces (answered as points in space): {}.\n",
+                first.measurement.back_pixels
+            )?;
+            writeln!(
+            out,
+            "| setting | share of the image's squared error | relRMSE there | light ratio there |"
+        )?;
+            writeln!(out, "|---|---:|---:|---:|")?;
+            for row in rows {
+                let m = &row.measurement;
+                writeln!(
                     out,
-                    " {} / {} / {:.2}x |",
-                    percent(class.share),
-                    percent(class.relative_rmse),
-                    class.light_ratio
+                    "| {} | {} | {} | {:.3}x |",
+                    row.setting,
+                    percent(m.back_share),
+                    percent(m.back_relative_rmse),
+                    m.back_light_ratio
                 )?;
             }
+        }
+        if rows.iter().any(|row| !row.measurement.classes.is_empty()) {
+            writeln!(out, "\nLightmap error by receiver class (share of the squared error, relRMSE within the class, light against the reference's):\n")?;
+            write!(out, "| setting |")?;
+            for class in ReceiverClass::ALL {
+                write!(out, " {} |", class.name())?;
+            }
             writeln!(out)?;
+            writeln!(out, "|---|{}", "---:|".repeat(ReceiverClass::ALL.len()))?;
+            if let Some(first) = rows.iter().find(|row| !row.measurement.classes.is_empty()) {
+                write!(out, "| receivers (seen) |")?;
+                for class in &first.measurement.classes {
+                    write!(out, " {} ({}) |", class.receivers, class.visible)?;
+                }
+                writeln!(out)?;
+            }
+            for row in rows {
+                write!(out, "| {} |", row.setting)?;
+                for class in &row.measurement.classes {
+                    write!(
+                        out,
+                        " {} / {} / {:.2}x |",
+                        percent(class.share),
+                        percent(class.relative_rmse),
+                        class.light_ratio
+                    )?;
+                }
+                writeln!(out)?;
+            }
         }
+        Ok(out)
     }
-    Ok(out)
-}
 
-fn json(
-    scene_path: &Path,
-    technique: &str,
-    settings: &ConvergeSettings,
-    references: &BTreeMap<u32, ReferenceSet>,
-    visible: &[bool],
-    rows: &[Row],
-) -> serde_json::Value {
-    let number = |value: f64| {
-        if value.is_finite() {
-            serde_json::json!(value)
-        } else {
-            serde_json::Value::Null
-        }
-    };
-    serde_json::json!({
-        "scene": scene_path.display().to_string(),
-        "technique": technique,
-        "receivers": visible.len(),
-        "visible_receivers": visible.iter().filter(|&&seen| seen).count(),
-        "reference_samples": settings.reference_samples,
-        "reference_spp": settings.reference_spp,
-        "seed": settings.seed,
-        "reference_noise": references.iter().map(|(bounces, reference)| {
-            let noise = reference.noise(visible);
-            serde_json::json!({
-                "bounces": bounces,
-                "lightmap": number(noise.lightmap),
-                "visible_lightmap": number(noise.visible_lightmap),
-                "image": number(noise.image),
-                "image_tiles": number(noise.image_tiles),
-                "space": number(noise.space),
-            })
-        }).collect::<Vec<_>>(),
-        "settings": rows.iter().map(|row| {
-            let m = &row.measurement;
-            serde_json::json!({
-                "setting": row.setting,
-                "bounces": row.bounces,
-                "bake_seconds": row.bake_seconds,
-                "update_ms": row.update_ms,
-                "lightmap": number(m.lightmap),
-                "visible_lightmap": number(m.visible_lightmap),
-                "image": number(m.image),
-                "image_tiles": number(m.image_tiles),
-                "light_ratio": number(m.light_ratio),
-                "space": number(m.space),
-                "space_light_ratio": number(m.space_light_ratio),
-                "back_facing_pixels": m.back_pixels,
-                "back_facing_share": number(m.back_share),
-                "back_facing_relative_rmse": number(m.back_relative_rmse),
-                "back_facing_light_ratio": number(m.back_light_ratio),
-                "classes": m.classes.iter().map(|class| serde_json::json!({
-                    "class": class.class.name(),
-                    "receivers": class.receivers,
-                    "visible": class.visible,
-                    "share": number(class.share),
-                    "relative_rmse": number(class.relative_rmse),
-                    "light_ratio": number(class.light_ratio),
-                })).collect::<Vec<_>>(),
-            })
-        }).collect::<Vec<_>>(),
-    })
+    fn json(&self) -> serde_json::Value {
+        let Study {
+            scene_path,
+            technique,
+            settings,
+            references,
+            visible,
+            rows,
+            ..
+        } = *self;
+        let number = |value: f64| {
+            if value.is_finite() {
+                serde_json::json!(value)
+            } else {
+                serde_json::Value::Null
+            }
+        };
+        serde_json::json!({
+            "scene": scene_path.display().to_string(),
+            "technique": technique,
+            "receivers": visible.len(),
+            "visible_receivers": visible.iter().filter(|&&seen| seen).count(),
+            "reference_samples": settings.reference_samples,
+            "reference_spp": settings.reference_spp,
+            "seed": settings.seed,
+            "reference_noise": references.iter().map(|(bounces, reference)| {
+                let noise = reference.noise(visible);
+                serde_json::json!({
+                    "bounces": bounces,
+                    "lightmap": number(noise.lightmap),
+                    "visible_lightmap": number(noise.visible_lightmap),
+                    "image": number(noise.image),
+                    "image_tiles": number(noise.image_tiles),
+                    "space": number(noise.space),
+                })
+            }).collect::<Vec<_>>(),
+            "settings": rows.iter().map(|row| {
+                let m = &row.measurement;
+                serde_json::json!({
+                    "setting": row.setting,
+                    "bounces": row.bounces,
+                    "bake_seconds": row.bake_seconds,
+                    "update_ms": row.update_ms,
+                    "lightmap": number(m.lightmap),
+                    "visible_lightmap": number(m.visible_lightmap),
+                    "image": number(m.image),
+                    "image_tiles": number(m.image_tiles),
+                    "light_ratio": number(m.light_ratio),
+                    "space": number(m.space),
+                    "space_light_ratio": number(m.space_light_ratio),
+                    "back_facing_pixels": m.back_pixels,
+                    "back_facing_share": number(m.back_share),
+                    "back_facing_relative_rmse": number(m.back_relative_rmse),
+                    "back_facing_light_ratio": number(m.back_light_ratio),
+                    "classes": m.classes.iter().map(|class| serde_json::json!({
+                        "class": class.class.name(),
+                        "receivers": class.receivers,
+                        "visible": class.visible,
+                        "share": number(class.share),
+                        "relative_rmse": number(class.relative_rmse),
+                        "light_ratio": number(class.light_ratio),
+                    })).collect::<Vec<_>>(),
+                })
+            }).collect::<Vec<_>>(),
+        })
+    }
 }
 
 #[cfg(test)]

@@ -24,6 +24,20 @@ fn context(scene: &str, resolution: u32) -> Arc<SceneContext> {
     Arc::new(SceneContext::new(scene, settings).unwrap())
 }
 
+/// PRM at its defaults, baked for `context` and updated under its lights.
+fn baked_and_updated(context: &Arc<SceneContext>) -> Box<dyn relight_technique::Technique> {
+    let bake = PrmKind.bake(context, &[], &NoProgress).unwrap();
+    let mut prm = PrmKind
+        .create(context.clone(), Some(&bake), &[], &NoProgress)
+        .unwrap();
+    prm.update(&Frame {
+        lights: &context.scene.lights,
+        index: 0,
+    })
+    .unwrap();
+    prm
+}
+
 /// A bake and the parameters it was made with.
 type CachedBake = (Vec<(String, String)>, Vec<u8>);
 
@@ -411,15 +425,7 @@ fn unlit_room_gets_the_light_that_crosses_the_doorway() {
         64,
         &NoProgress,
     );
-    let bake = PrmKind.bake(&context, &[], &NoProgress).unwrap();
-    let mut prm = PrmKind
-        .create(context.clone(), Some(&bake), &[], &NoProgress)
-        .unwrap();
-    prm.update(&Frame {
-        lights: &lights,
-        index: 0,
-    })
-    .unwrap();
+    let prm = baked_and_updated(&context);
     let image = relight_render::render::render_with_technique(
         &context,
         &lights,
@@ -456,15 +462,7 @@ fn points_in_space_gather_the_lightmap() {
             &points.normals,
             &NoProgress,
         );
-        let bake = PrmKind.bake(&context, &[], &NoProgress).unwrap();
-        let mut prm = PrmKind
-            .create(context.clone(), Some(&bake), &[], &NoProgress)
-            .unwrap();
-        prm.update(&Frame {
-            lights: &lights,
-            index: 0,
-        })
-        .unwrap();
+        let prm = baked_and_updated(&context);
         let values: Vec<relight_core::Rgb> = points
             .positions
             .iter()
