@@ -60,6 +60,13 @@
 //!   coarser than the points (a wall of two triangles), and lightmap texels
 //!   are a tessellation finer than the points everywhere. Moving meshes
 //!   interpolate at their vertices, as in the paper.
+//! - Points in space (back faces, points off the meshes) blend the light of
+//!   their nearest visible facing sparse points, each evaluated where that
+//!   point stands: 75 to 80 % relRMSE against one bounce on the shipped
+//!   scenes' grids of points (`relight converge`), since a point in the
+//!   middle of a room is nearer the lit surfaces than the points on them.
+//!   `interpolation = false` gathers every VAL at the query instead (9 to
+//!   12 % on the boxes, but with no occlusion: 1.23x on Sponza).
 //! - Glossy reflection is evaluated for the scene camera's eye, which relight
 //!   keeps fixed; the glossy lobe uses c = specular / (2 pi), so c_k =
 //!   specular (k + 1) / (2 pi) is the normalised Phong lobe.
