@@ -178,6 +178,7 @@ pub fn run(
             };
             ReferenceSet::cached(
                 context,
+                &split.space,
                 path_settings,
                 settings.reference_samples,
                 settings.reference_spp,

@@ -4,10 +4,11 @@
 //! receivers the camera sees, what kind of place each receiver stands in,
 //! and the error norms over each of those.
 //!
-//! Data flow: [`ReferenceSet::cached`] path traces (or reads) the
-//! reference once per scene and bounce count; [`visible_receivers`] and
-//! [`classify_receivers`] are computed once per scene; [`Measurement::of`]
-//! compares one updated technique with them.
+//! Data flow: [`Split::of`] finds once per scene which receivers the camera
+//! sees, each receiver's class, the pixels that see back faces and the
+//! points in space; [`ReferenceSet::cached`] path traces (or reads) the
+//! reference at all of them once per bounce count; [`Measurement::of`]
+//! compares one updated technique with it.
 
 use crate::image::Image;
 use crate::metrics::{error_norms, error_norms_where, light_ratio, relative_noise, tile_means};
@@ -120,12 +121,14 @@ impl ReferenceSet {
         hash
     }
 
-    /// The reference with `samples` paths per receiver and `spp` per pixel,
-    /// read from `cache` when a file of the same key is there, else traced
-    /// and written there (a cache that cannot be written only costs the
-    /// next run its time).
+    /// The reference with `samples` paths per receiver and per point of
+    /// `space_points` (those of [`SpacePoints::of`] this context, which the
+    /// cache file's layout assumes) and `spp` per pixel, read from `cache`
+    /// when a file of the same key is there, else traced and written there
+    /// (a cache that cannot be written only costs the next run its time).
     pub fn cached(
         context: &SceneContext,
+        space_points: &SpacePoints,
         settings: PathSettings,
         samples: u32,
         spp: u32,
@@ -137,7 +140,6 @@ impl ReferenceSet {
         let receivers = context.atlas.receivers.len();
         let [width, height] = context.scene.camera.resolution;
         let pixels = (width * height) as usize;
-        let space_points = SpacePoints::of(context);
         let points = space_points.positions.len();
         if let Some(values) = file.as_ref().and_then(|file| std::fs::read(file).ok()) {
             if values.len() == (receivers + pixels + points) * 2 * 12 {
