@@ -166,9 +166,7 @@ pub fn run(
             update_ms.push(technique.timings().total().as_secs_f64() * 1e3);
         }
         update_ms.sort_by(|a, b| a.total_cmp(b));
-        let bounces = technique
-            .indirect_bounces()
-            .map_or(settings.max_bounces, |own| own.min(settings.max_bounces));
+        let bounces = technique.reference_bounces(settings.max_bounces);
         let reference = references.entry(bounces).or_insert_with(|| trace(bounces));
         let receivers = technique.receiver_irradiance().map(<[Rgb]>::to_vec);
         let lightmap = match receivers {

@@ -167,9 +167,7 @@ pub fn run(
             index: 0,
         })?;
         let update_ms = instance.timings().total().as_secs_f64() * 1e3;
-        let bounces = instance
-            .indirect_bounces()
-            .map_or(settings.max_bounces, |own| own.min(settings.max_bounces));
+        let bounces = instance.reference_bounces(settings.max_bounces);
         let reference = references.entry(bounces).or_insert_with(|| {
             let path_settings = PathSettings {
                 max_bounces: bounces,
@@ -318,11 +316,14 @@ impl Study<'_> {
                 row.update_ms
             )?;
         }
-        if let Some(first) = rows.first().filter(|row| row.measurement.back_pixels > 0) {
+        if let Some(first) = rows
+            .first()
+            .filter(|row| row.measurement.back_facing.count > 0)
+        {
             writeln!(
                 out,
                 "\nPixels that see back faces (answered as points in space): {}.\n",
-                first.measurement.back_pixels
+                first.measurement.back_facing.count
             )?;
             writeln!(
             out,
@@ -335,9 +336,9 @@ impl Study<'_> {
                     out,
                     "| {} | {} | {} | {:.3}x |",
                     row.setting,
-                    percent(m.back_share),
-                    percent(m.back_relative_rmse),
-                    m.back_light_ratio
+                    percent(m.back_facing.share),
+                    percent(m.back_facing.relative_rmse),
+                    m.back_facing.light_ratio
                 )?;
             }
         }
@@ -423,10 +424,10 @@ impl Study<'_> {
                     "light_ratio": number(m.light_ratio),
                     "space": number(m.space),
                     "space_light_ratio": number(m.space_light_ratio),
-                    "back_facing_pixels": m.back_pixels,
-                    "back_facing_share": number(m.back_share),
-                    "back_facing_relative_rmse": number(m.back_relative_rmse),
-                    "back_facing_light_ratio": number(m.back_light_ratio),
+                    "back_facing_pixels": m.back_facing.count,
+                    "back_facing_share": number(m.back_facing.share),
+                    "back_facing_relative_rmse": number(m.back_facing.relative_rmse),
+                    "back_facing_light_ratio": number(m.back_facing.light_ratio),
                     "classes": m.classes.iter().map(|class| serde_json::json!({
                         "class": class.class.name(),
                         "receivers": class.receivers,

@@ -11,7 +11,9 @@
 //! compares one updated technique with it.
 
 use crate::image::Image;
-use crate::metrics::{error_norms, error_norms_where, light_ratio, relative_noise, tile_means};
+use crate::metrics::{
+    error_norms, light_ratio, relative_noise, subset_error, tile_means, SubsetError,
+};
 use crate::render::{render_reference, render_with_technique};
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, stratified_square};
@@ -480,10 +482,7 @@ pub struct Measurement {
     pub classes: Vec<ClassError>,
     /// Pixels that see back faces: how many, their share of the image's
     /// squared error, their relRMSE and light ratio.
-    pub back_pixels: usize,
-    pub back_share: f64,
-    pub back_relative_rmse: f64,
-    pub back_light_ratio: f64,
+    pub back_facing: SubsetError,
     /// `indirect_irradiance_in_space` at the [`SpacePoints`]: relRMSE and
     /// total light against the path tracer's.
     pub space: f64,
@@ -518,34 +517,25 @@ impl Measurement {
         let (lightmap, visible_lightmap, classes) = match receivers {
             Some(values) => {
                 let truth = &reference.lightmap;
-                let squared_error = |index: usize| -> f64 {
-                    (0..3)
-                        .map(|c| ((values[index][c] - truth[index][c]) as f64).powi(2))
-                        .sum()
-                };
-                let total: f64 = (0..values.len()).map(squared_error).sum();
                 let split = ReceiverClass::ALL
                     .iter()
                     .map(|&class| {
-                        let members = |index: usize| classes[index] == class;
-                        let of_class: Vec<usize> =
-                            (0..values.len()).filter(|&i| members(i)).collect();
-                        let error: f64 = of_class.iter().map(|&i| squared_error(i)).sum();
-                        let pick =
-                            |list: &[Rgb]| of_class.iter().map(|&i| list[i]).collect::<Vec<_>>();
+                        let part = subset_error(values, truth, |i| classes[i] == class);
                         ClassError {
                             class,
-                            receivers: of_class.len(),
-                            visible: of_class.iter().filter(|&&i| visible[i]).count(),
-                            share: if total > 0.0 { error / total } else { 0.0 },
-                            relative_rmse: error_norms_where(values, truth, members).relative_rmse,
-                            light_ratio: light_ratio(&pick(values), &pick(truth)),
+                            receivers: part.count,
+                            visible: (0..values.len())
+                                .filter(|&i| classes[i] == class && visible[i])
+                                .count(),
+                            share: part.share,
+                            relative_rmse: part.relative_rmse,
+                            light_ratio: part.light_ratio,
                         }
                     })
                     .collect();
                 (
                     error_norms(values, truth).relative_rmse,
-                    error_norms_where(values, truth, |i| visible[i]).relative_rmse,
+                    subset_error(values, truth, |i| visible[i]).relative_rmse,
                     split,
                 )
             }
@@ -564,37 +554,7 @@ impl Measurement {
             classes,
             space: error_norms(&space, &reference.space).relative_rmse,
             space_light_ratio: light_ratio(&space, &reference.space),
-            back_pixels: back_facing.iter().filter(|&&back| back).count(),
-            back_share: {
-                let squared = |keep: &dyn Fn(usize) -> bool| -> f64 {
-                    (0..image.pixels.len())
-                        .filter(|&i| keep(i))
-                        .map(|i| {
-                            (image.pixels[i] - reference.image.pixels[i]).length_squared() as f64
-                        })
-                        .sum()
-                };
-                let total = squared(&|_| true);
-                if total > 0.0 {
-                    squared(&|i| back_facing[i]) / total
-                } else {
-                    0.0
-                }
-            },
-            back_relative_rmse: error_norms_where(&image.pixels, &reference.image.pixels, |i| {
-                back_facing[i]
-            })
-            .relative_rmse,
-            back_light_ratio: {
-                let pick = |list: &[Rgb]| -> Vec<Rgb> {
-                    list.iter()
-                        .zip(back_facing)
-                        .filter(|(_, &back)| back)
-                        .map(|(value, _)| *value)
-                        .collect()
-                };
-                light_ratio(&pick(&image.pixels), &pick(&reference.image.pixels))
-            },
+            back_facing: subset_error(&image.pixels, &reference.image.pixels, |i| back_facing[i]),
         };
         (measurement, image)
     }

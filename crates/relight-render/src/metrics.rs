@@ -88,18 +88,35 @@ pub fn light_ratio(values: &[Rgb], reference: &[Rgb]) -> f64 {
     total(values) / total(reference)
 }
 
-/// Error norms of `values` against `reference` over the elements `keep`
-/// selects.
-pub fn error_norms_where(
+/// One subset's part of an error: how many elements `keep` selects, their
+/// share of the whole's squared error, and relRMSE and light ratio within
+/// them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SubsetError {
+    pub count: usize,
+    pub share: f64,
+    pub relative_rmse: f64,
+    pub light_ratio: f64,
+}
+
+pub fn subset_error(
     values: &[Rgb],
     reference: &[Rgb],
     keep: impl Fn(usize) -> bool,
-) -> ErrorNorms {
+) -> SubsetError {
+    let squared = |(value, truth): (&Rgb, &Rgb)| (*value - *truth).length_squared() as f64;
+    let total: f64 = values.iter().zip(reference).map(squared).sum();
     let (picked, truth): (Vec<Rgb>, Vec<Rgb>) = (0..values.len())
         .filter(|&index| keep(index))
         .map(|index| (values[index], reference[index]))
         .unzip();
-    error_norms(&picked, &truth)
+    let part: f64 = picked.iter().zip(&truth).map(squared).sum();
+    SubsetError {
+        count: picked.len(),
+        share: if total > 0.0 { part / total } else { 0.0 },
+        relative_rmse: error_norms(&picked, &truth).relative_rmse,
+        light_ratio: light_ratio(&picked, &truth),
+    }
 }
 
 /// Relative noise of a Monte Carlo estimate: the L2 norm of its per-element

@@ -125,6 +125,12 @@ pub trait Technique: Send + Sync {
         None
     }
 
+    /// The bounces a reference must have to measure this technique, when
+    /// the comparison allows at most `most`.
+    fn reference_bounces(&self, most: u32) -> u32 {
+        self.indirect_bounces().map_or(most, |own| own.min(most))
+    }
+
     /// Indirect irradiance per lightmap receiver after the last update, in
     /// the atlas's receiver order, when the technique stores a lightmap.
     fn receiver_irradiance(&self) -> Option<&[Rgb]>;
