@@ -193,6 +193,30 @@ mesh = "mesh.obj"
 {CORNELL_CAMERA}
 {CORNELL_POINT_LIGHT}"""
     write("cornell-box-point", cornell(False), "Cornell box without its area light, metres.", CORNELL_MATERIALS, scene)
+    # The near field: a dimmer point light 0.1 m from one wall, or from the
+    # three surfaces of a corner.
+    near_field = {
+        "scene-wall-light.toml": ("""# The point-lit Cornell box with its light 0.1 m from the red wall, in front
+# of the tall block: most of the indirect light starts on a bright spot of
+# wall close to the light, the near field that sparse light samples handle
+# worst.""", [0.455, 0.42, 0.15]),
+        "scene-corner-light.toml": ("""# The point-lit Cornell box with its light 0.1 m from the green wall, the
+# back wall and the ceiling: three bright spots meeting in a corner, whose
+# light the rest of the box receives only indirectly.""", [0.1, 0.4488, 0.4592]),
+    }
+    for file, (comment, position) in near_field.items():
+        (HERE / "cornell-box-point" / file).write_text(f"""{comment}
+mesh = "mesh.obj"
+
+{CORNELL_CAMERA}
+[[lights]]
+kind = "point"
+position = [{", ".join(str(c) for c in position)}]
+intensity = [0.06, 0.051, 0.036]
+
+[environment]
+radiance = [0.0, 0.0, 0.0]
+""")
 
 
 def corridor():

@@ -58,6 +58,7 @@
 //! | `bounces` | 16 | 1 = single bounce; more = last frame's indirect light feeds the probes, and the first update runs this many passes |
 //! | `probe_budget` | 0 | probes refreshed per frame, round robin (staggered updates); 0 = all |
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent (glossy reflection of the probes) |
+//! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -91,10 +92,15 @@
 //!   lights higher bounces lag by a frame each. `bounces` cannot stop the
 //!   feedback at an exact count without a lightmap per bounce, so it sets
 //!   the passes of the first update and switches feedback off at 1.
-//! - Points in space (dynamic objects) use the probes directly,
-//!   distance-weighted with visibility to each probe, without parallax
-//!   correction: an approximation, documented as such. So does glossy
-//!   reflection unless `radiance_order` > 0, which precomputes the
+//! - Points in space (dynamic objects, back faces) gather the light
+//!   leaving the surfaces around them over `space_rays` fixed rays (direct
+//!   light at each hit plus the lightmap's indirect light there), so walls
+//!   stop light and the answer has the lightmap's bounces; it costs
+//!   `space_rays` rays and direct-light evaluations a query. Blending the
+//!   probes, which have neither parallax nor visibility to the point,
+//!   measured 30 % relRMSE on the two-rooms grid. Glossy reflection still
+//!   blends the probes, distance-weighted with visibility to each probe,
+//!   unless `radiance_order` > 0, which precomputes the
 //!   receivers' incident radiance from the probes with the same parallax
 //!   and visibility as the irradiance transport (one CPCA row per receiver
 //!   and output coefficient) and convolves it with the Phong lobe.
@@ -166,6 +172,7 @@ pub struct SrpParams {
     pub bounces: u32,
     pub probe_budget: u32,
     pub specular: f32,
+    pub space_rays: u32,
     pub seed: u64,
 }
 
@@ -191,6 +198,7 @@ impl Default for SrpParams {
             bounces: 16,
             probe_budget: 0,
             specular: 0.0,
+            space_rays: 64,
             seed: 1,
         }
     }
@@ -238,6 +246,8 @@ impl SrpParams {
             Some("pca_vectors and radiance_pca_vectors must be at least 1".into())
         } else if self.bounces == 0 {
             Some("bounces must be at least 1".into())
+        } else if self.space_rays == 0 {
+            Some("space_rays must be at least 1".into())
         } else if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {
             Some("specular must be between 0 and 1".into())
         } else {
@@ -258,6 +268,7 @@ impl SrpParams {
             bounces: self.bounces,
             probe_budget: self.probe_budget,
             specular: self.specular,
+            space_rays: self.space_rays,
         }
     }
 }

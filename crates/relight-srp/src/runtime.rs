@@ -9,8 +9,10 @@ use crate::probes::falloff_weight;
 use glam::Vec3;
 use rayon::prelude::*;
 use relight_core::{sh, Rgb, Rgb9e5};
+use relight_scene::Light;
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
+    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
+    TechniqueError,
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
@@ -26,6 +28,8 @@ pub struct RuntimeSettings {
     pub probe_budget: u32,
     /// Specular reflectance of materials with a Phong exponent.
     pub specular: f32,
+    /// Gather rays per point in space.
+    pub space_rays: u32,
 }
 
 pub struct Srp {
@@ -94,6 +98,10 @@ pub struct Srp {
     gathered_normals: Vec<Vec3>,
     gathered_direct: Vec<Rgb>,
     updates: u64,
+    /// The last frame's lights and the fixed rays that answer points in
+    /// space from the light leaving the surfaces around them.
+    lights: Vec<Light>,
+    space_gather: SurfaceGather,
 }
 
 /// Puts the probe-visible receivers (the texels whose direct light every
@@ -218,6 +226,8 @@ impl Srp {
             gathered_normals: Vec::new(),
             gathered_direct: Vec::new(),
             updates: 0,
+            lights: Vec::new(),
+            space_gather: SurfaceGather::new(settings.space_rays),
             coefficients,
             settings,
             context,
@@ -708,11 +718,6 @@ fn texel_slots(
         .collect()
 }
 
-/// The cosine lobe's factors (Ramamoorthi and Hanrahan) for irradiance.
-fn cosine_band_factors() -> [f32; sh::MAX_BANDS] {
-    std::array::from_fn(sh::cosine_lobe_factor)
-}
-
 impl Technique for Srp {
     fn name(&self) -> &'static str {
         "srp"
@@ -726,6 +731,8 @@ impl Technique for Srp {
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
         self.receiver_values = OnceLock::new();
+        self.lights.clear();
+        self.lights.extend_from_slice(frame.lights);
         timings.time("direct lightmap", || {
             self.select_probes();
             self.direct_light(frame);
@@ -766,12 +773,22 @@ impl Technique for Srp {
         )
     }
 
-    /// Distance-weighted probes, each probe's radiance convolved with the
-    /// cosine lobe around `normal` (Ramamoorthi and Hanrahan): no parallax
-    /// correction and no mutual visibility beyond the point seeing the
-    /// probe, so an approximation for dynamic objects.
+    /// The light leaving the surfaces around the point, gathered over
+    /// fixed rays: each hit reflects its direct light plus the lightmap's
+    /// indirect light there (none with `bounces = 1`, so the answer has the
+    /// lightmap's bounce count). Blending the probes instead has neither
+    /// parallax nor visibility between probe and point: 30 % relRMSE on
+    /// the two-rooms grid of points in space against the gather's 6 %.
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
-        self.blend_probes(position, normal, normal, 3, &cosine_band_factors())
+        let single_bounce = self.settings.bounces <= 1;
+        self.space_gather
+            .irradiance(&self.context, &self.lights, position, normal, |point| {
+                if single_bounce {
+                    Rgb::ZERO
+                } else {
+                    self.indirect_irradiance(point)
+                }
+            })
     }
 
     /// Glossy reflection of the probes' radiance: the interpolated probe SH
