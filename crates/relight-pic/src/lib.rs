@@ -19,8 +19,14 @@
 //! flux up the tree; cache lighting sums linked flux times transport into
 //! SH (`bands` for luma, `chroma_bands` for chroma); shading reads the
 //! caches bilinearly in the lightmap (static surfaces) or trilinearly in
-//! the grid (points in space) and convolves them with the cosine lobe, or
-//! with a Phong lobe for glossy reflection.
+//! the grid (points in space with `space = grid`) and convolves them with
+//! the cosine lobe, or with a Phong lobe for glossy reflection. By default
+//! points in space gather the light leaving the surfaces around them over
+//! `space_rays` fixed rays (each hit's direct light plus the lightmap
+//! caches' indirect light there): the grid's trilinear blend crosses walls
+//! and measured 70.6 % relRMSE on Sponza's grid of points in space (points
+//! between the grid's caches, 1.5 m apart there), the gather 18.3 %, at
+//! `space_rays` rays and direct-light evaluations a query.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|
@@ -44,6 +50,8 @@
 //! | `bounces` | 16 | 1 = single bounce; more = last frame's caches light the surfels, and the first update runs this many passes |
 //! | `area_lights` | `links` | `links`: emissive surfels send their light through the links (the paper); `direct`: the direct-light service lights surfels from emissive triangles too |
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent |
+//! | `space` | `gather` | points in space: `gather` the light leaving the surfaces around them over `space_rays` fixed rays, or read the `grid` caches (the paper; cheaper, but it leaks through walls) |
+//! | `space_rays` | 64 | gather rays per point in space |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -87,8 +95,8 @@ pub use bake::PicBake;
 pub use runtime::{Pic, RuntimeSettings};
 
 use relight_technique::{
-    parse_params, with_scene_section, Progress, SceneContext, Technique, TechniqueError,
-    TechniqueKind,
+    parse_params, with_scene_section, Progress, SceneContext, SurfaceGather, Technique,
+    TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -138,6 +146,8 @@ pub struct PicParams {
     pub bounces: u32,
     pub area_lights: String,
     pub specular: f32,
+    pub space: String,
+    pub space_rays: u32,
     pub seed: u64,
 }
 
@@ -164,6 +174,8 @@ impl Default for PicParams {
             bounces: 16,
             area_lights: "links".into(),
             specular: 0.0,
+            space: "gather".into(),
+            space_rays: 64,
             seed: 1,
         }
     }
@@ -261,6 +273,13 @@ impl PicParams {
             ))
         } else if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {
             Some("specular must be between 0 and 1".into())
+        } else if self.space != "gather" && self.space != "grid" {
+            Some(format!(
+                "space '{}' is unknown: use gather or grid",
+                self.space
+            ))
+        } else if self.space_rays == 0 {
+            Some("space_rays must be at least 1".into())
         } else {
             None
         };
@@ -285,6 +304,7 @@ impl PicParams {
             bounces: self.bounces,
             area_lights_through_links: self.area_lights == "links",
             specular: self.specular,
+            space_gather: (self.space == "gather").then(|| SurfaceGather::new(self.space_rays)),
         }
     }
 }

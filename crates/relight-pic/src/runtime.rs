@@ -7,8 +7,10 @@ use rayon::prelude::*;
 use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
 use relight_core::{sh, Rgb};
 use relight_scene::atlas::{Atlas, TexelDensity};
+use relight_scene::Light;
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfacePoint, Technique, TechniqueError,
+    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
+    TechniqueError,
 };
 use std::f32::consts::PI;
 use std::sync::{Arc, OnceLock};
@@ -17,7 +19,7 @@ use std::time::{Duration, Instant};
 const NO_CACHE: u32 = u32::MAX;
 
 /// Run-time settings (one bake serves every value of them).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct RuntimeSettings {
     /// Luma bands of the caches (fixed by the bake for projected links).
     pub bands: usize,
@@ -27,6 +29,9 @@ pub struct RuntimeSettings {
     /// direct light then leaves emissive triangles out.
     pub area_lights_through_links: bool,
     pub specular: f32,
+    /// Points in space gather the light leaving the surfaces around them;
+    /// `None`: they read the grid caches.
+    pub space_gather: Option<SurfaceGather>,
 }
 
 pub struct Pic {
@@ -66,6 +71,8 @@ pub struct Pic {
     receiver_values: OnceLock<Vec<Rgb>>,
     timings: StageTimings,
     updates: u64,
+    /// The last frame's lights, for gathers at points in space.
+    lights: Vec<Light>,
 }
 
 impl Pic {
@@ -157,6 +164,7 @@ impl Pic {
             receiver_values: OnceLock::new(),
             timings: StageTimings::default(),
             updates: 0,
+            lights: Vec::new(),
             cache_of_texel,
             own_atlas,
             context,
@@ -788,6 +796,8 @@ impl Technique for Pic {
             1
         };
         let feedback = self.settings.bounces > 1;
+        self.lights.clear();
+        self.lights.extend_from_slice(frame.lights);
         let mut surfel_time = Duration::ZERO;
         let mut pull_time = Duration::ZERO;
         let mut cache_time = Duration::ZERO;
@@ -818,7 +828,22 @@ impl Technique for Pic {
         self.surface_irradiance(point.triangle, point.barycentric, point.normal)
     }
 
+    /// Gathered from the surfaces around the point (each hit's direct
+    /// light plus the lightmap caches' indirect light there, none with
+    /// `bounces = 1`), or the grid caches' trilinear blend, which crosses
+    /// walls: on Sponza's grid of points in space the grid measured 70.6 %
+    /// relRMSE.
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
+        if let Some(gather) = &self.settings.space_gather {
+            let single_bounce = self.settings.bounces <= 1;
+            return gather.irradiance(&self.context, &self.lights, position, normal, |point| {
+                if single_bounce {
+                    Rgb::ZERO
+                } else {
+                    self.indirect_irradiance(point)
+                }
+            });
+        }
         let taps = self.grid_taps(position);
         ycocg_to_rgb(self.lookup(&taps, normal, &self.cosine_factors)).max(Rgb::ZERO)
     }
