@@ -559,3 +559,63 @@ impl Measurement {
         (measurement, image)
     }
 }
+
+/// `technique`, already updated under the scene's lights, against the path
+/// tracer with as many bounces as it computes (`samples` paths per receiver
+/// and point in space, `spp` per pixel, nothing cached): the measurement a
+/// convergence study makes of one setting, and the reference's own noise.
+pub fn measure_against_path_tracer(
+    context: &SceneContext,
+    technique: &dyn Technique,
+    samples: u32,
+    spp: u32,
+) -> (Measurement, Noise) {
+    let split = Split::of(context);
+    let settings = PathSettings {
+        max_bounces: technique.reference_bounces(PathSettings::default().max_bounces),
+        ..PathSettings::default()
+    };
+    let progress = relight_technique::NoProgress;
+    let reference = ReferenceSet::cached(
+        context,
+        &split.space,
+        settings,
+        samples,
+        spp,
+        None,
+        &progress,
+    );
+    let (measurement, _) = Measurement::of(context, technique, &reference, &split, 4, &progress);
+    (measurement, reference.noise(&split.visible))
+}
+
+/// The shipped closed scenes the tightest bounds apply to, relative
+/// to the repository's `scenes/` folder: the Cornell box with its area
+/// light, with a point light under the ceiling, 0.1 m from a wall and 0.1 m
+/// from a corner, and the corridor.
+pub const CLOSED_BOXES: [&str; 5] = [
+    "cornell-box/scene.toml",
+    "cornell-box-point/scene.toml",
+    "cornell-box-point/scene-wall-light.toml",
+    "cornell-box-point/scene-corner-light.toml",
+    "corridor/scene.toml",
+];
+
+/// The context of a shipped scene (`scenes/` + `relative`) at its own
+/// lightmap density, its camera's image shrunk by `shrink` on each side:
+/// for tests, which need the references' noise low at a test's cost.
+pub fn shipped_context(relative: &str, shrink: u32) -> std::sync::Arc<SceneContext> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../scenes")
+        .join(relative);
+    let mut scene = relight_scene::load_scene(&path)
+        .unwrap_or_else(|error| panic!("{}: {error}", path.display()));
+    let [width, height] = scene.camera.resolution;
+    let shrink = shrink.max(1);
+    scene.camera.resolution = [(width / shrink).max(1), (height / shrink).max(1)];
+    let settings = relight_technique::ContextSettings {
+        lightmap: relight_scene::atlas::TexelDensity::from_resolution(None),
+        ..relight_technique::ContextSettings::default()
+    };
+    std::sync::Arc::new(SceneContext::new(scene, settings).expect("the scene's lightmap builds"))
+}

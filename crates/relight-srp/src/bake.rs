@@ -319,26 +319,29 @@ impl SrpBake {
         progress.start("srp transport", receivers.len() as u64);
         // One cluster per work item: its transport matrix exists only while
         // it is compressed, so memory grows with the threads, not the scene.
-        let compressed: Vec<ClusterOutput> = clusters
-            .par_iter()
+        let split = ClusterSplit {
+            positions: &receivers.positions,
+            nearby: &nearby,
+            coefficients,
+            rank,
+            min_energy: params.cluster_energy as f64,
+        };
+        let (clusters, compressed): (Vec<Vec<u32>>, Vec<ClusterOutput>) = clusters
+            .into_par_iter()
             .map_init(
                 || TransportScratch::new(bands),
                 |scratch, members| {
-                    let output = bake_cluster(
-                        context,
-                        &probes,
-                        &nearby,
-                        members,
-                        &settings,
-                        rank,
-                        coefficients,
-                        scratch,
-                    );
-                    progress.advance(members.len() as u64);
-                    output
+                    let count = members.len() as u64;
+                    let (matrix, columns, valid_samples) =
+                        cluster_transport(context, &probes, &nearby, &members, &settings, scratch);
+                    let mut parts = Vec::new();
+                    split.compress(members, matrix, columns, valid_samples, &mut parts);
+                    progress.advance(count);
+                    parts
                 },
             )
-            .collect();
+            .flatten_iter()
+            .unzip();
         progress.finish();
 
         let (cluster_set, totals) = ClusterSet::assemble(rank, &clusters, compressed);
@@ -724,26 +727,100 @@ fn cluster_matrix(
 }
 
 #[allow(clippy::too_many_arguments)]
-fn bake_cluster(
-    context: &SceneContext,
-    probes: &[Vec3],
-    nearby: &[Vec<u32>],
-    members: &[u32],
-    settings: &TransportSettings,
-    rank: usize,
+/// How clusters whose principal vectors keep too little of their
+/// transport's energy are halved and compressed again.
+struct ClusterSplit<'a> {
+    positions: &'a [Vec3],
+    nearby: &'a [Vec<u32>],
     coefficients: usize,
-    scratch: &mut TransportScratch,
-) -> ClusterOutput {
-    let (matrix, columns, valid_samples) =
-        cluster_transport(context, probes, nearby, members, settings, scratch);
-    compress_cluster(
-        &matrix,
-        members.len(),
-        columns,
-        coefficients,
-        rank,
-        valid_samples,
-    )
+    rank: usize,
+    /// Fraction of the squared transport a cluster's `rank` vectors must
+    /// keep; below it a cluster of at least `2 rank` members is halved.
+    min_energy: f64,
+}
+
+impl ClusterSplit<'_> {
+    /// Compresses the cluster `members` (the rows of `matrix`, whose
+    /// columns are `columns` probes times C), halving it spatially while
+    /// its vectors keep less than `min_energy`; pushes the parts in
+    /// spatial order. A cluster's vectors must serve every probe its
+    /// members see (more in a long corridor than in a box) and every
+    /// direction its members face, so one count of vectors per 1024
+    /// receivers is too few in some scenes and wasted in others.
+    fn compress(
+        &self,
+        members: Vec<u32>,
+        matrix: Vec<f32>,
+        columns: Vec<u32>,
+        valid_samples: u64,
+        parts: &mut Vec<(Vec<u32>, ClusterOutput)>,
+    ) {
+        let rows = members.len();
+        let output = compress_cluster(
+            &matrix,
+            rows,
+            columns.clone(),
+            self.coefficients,
+            self.rank,
+            valid_samples,
+        );
+        let kept = if output.energy > 0.0 {
+            output.captured / output.energy
+        } else {
+            1.0
+        };
+        if kept >= self.min_energy || rows < 2 * self.rank.max(1) {
+            parts.push((members, output));
+            return;
+        }
+        let (low, high) = transport::halve((0..rows as u32).collect(), |local| {
+            self.positions[members[local as usize] as usize]
+        });
+        // The valid-sample count only feeds the bake's statistics, which
+        // sum it over clusters: the first part carries the whole count.
+        for (part, valid) in [(low, valid_samples), (high, 0)] {
+            let part_members: Vec<u32> =
+                part.iter().map(|&local| members[local as usize]).collect();
+            let (part_matrix, part_columns) = self.rows_of(&matrix, &columns, &members, &part);
+            self.compress(part_members, part_matrix, part_columns, valid, parts);
+        }
+    }
+
+    /// The rows `locals` of a cluster's matrix, keeping only the columns of
+    /// the probes those rows' receivers see.
+    fn rows_of(
+        &self,
+        matrix: &[f32],
+        columns: &[u32],
+        members: &[u32],
+        locals: &[u32],
+    ) -> (Vec<f32>, Vec<u32>) {
+        let c = self.coefficients;
+        let width = columns.len() * c;
+        let mut part_columns: Vec<u32> = locals
+            .iter()
+            .flat_map(|&local| {
+                self.nearby[members[local as usize] as usize]
+                    .iter()
+                    .copied()
+            })
+            .collect();
+        part_columns.sort_unstable();
+        part_columns.dedup();
+        let part_width = part_columns.len() * c;
+        let mut part = vec![0.0f32; locals.len() * part_width];
+        for (row, &local) in locals.iter().enumerate() {
+            let source = &matrix[local as usize * width..][..width];
+            for (slot, probe) in part_columns.iter().enumerate() {
+                let column = columns
+                    .binary_search(probe)
+                    .expect("a part's probe is a column of its cluster");
+                part[row * part_width + slot * c..][..c]
+                    .copy_from_slice(&source[column * c..][..c]);
+            }
+        }
+        (part, part_columns)
+    }
 }
 
 /// Compresses one cluster's `rows` x (columns x C) transport matrix to

@@ -351,40 +351,48 @@ pub fn aabb_clusters(positions: &[Vec3], max_size: usize) -> Vec<Vec<u32>> {
             }
             continue;
         }
-        let (lo, hi) = members.iter().fold(
-            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-            |(lo, hi), &index| {
-                let position = positions[index as usize];
-                (lo.min(position), hi.max(position))
-            },
-        );
-        let extent = hi - lo;
-        let axis = if extent.x >= extent.y && extent.x >= extent.z {
-            0
-        } else if extent.y >= extent.z {
-            1
-        } else {
-            2
-        };
-        let middle = 0.5 * (lo[axis] + hi[axis]);
-        let (mut low, mut high): (Vec<u32>, Vec<u32>) = members
-            .iter()
-            .partition(|&&index| positions[index as usize][axis] < middle);
-        if low.is_empty() || high.is_empty() {
-            let mut sorted = members;
-            sorted.sort_by(|&a, &b| {
-                positions[a as usize][axis]
-                    .total_cmp(&positions[b as usize][axis])
-                    .then(a.cmp(&b))
-            });
-            high = sorted.split_off(sorted.len() / 2);
-            low = sorted;
-        }
+        let (low, high) = halve(members, |index| positions[index as usize]);
         // Pushed high first so clusters come out in ascending spatial order.
         pending.push(high);
         pending.push(low);
     }
     done
+}
+
+/// Splits two or more `members` in two across the longest axis of their
+/// bounding box, at its middle, or at the median when the middle leaves
+/// one side empty (coincident points); the low side first.
+pub fn halve(members: Vec<u32>, position_of: impl Fn(u32) -> Vec3) -> (Vec<u32>, Vec<u32>) {
+    let (lo, hi) = members.iter().fold(
+        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+        |(lo, hi), &index| {
+            let position = position_of(index);
+            (lo.min(position), hi.max(position))
+        },
+    );
+    let extent = hi - lo;
+    let axis = if extent.x >= extent.y && extent.x >= extent.z {
+        0
+    } else if extent.y >= extent.z {
+        1
+    } else {
+        2
+    };
+    let middle = 0.5 * (lo[axis] + hi[axis]);
+    let (low, high): (Vec<u32>, Vec<u32>) = members
+        .iter()
+        .partition(|&&index| position_of(index)[axis] < middle);
+    if !low.is_empty() && !high.is_empty() {
+        return (low, high);
+    }
+    let mut sorted = members;
+    sorted.sort_by(|&a, &b| {
+        position_of(a)[axis]
+            .total_cmp(&position_of(b)[axis])
+            .then(a.cmp(&b))
+    });
+    let high = sorted.split_off(sorted.len() / 2);
+    (sorted, high)
 }
 
 /// A cluster's transport matrix compressed to `rank` principal vectors:
