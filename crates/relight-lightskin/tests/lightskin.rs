@@ -697,37 +697,8 @@ fn points_in_space_gather_one_bounce_from_the_surfaces_around_them() {
     // reference paths add about 5 % of noise.
     for scene in ["cornell-box-point", "corridor"] {
         let context = shipped(scene);
-        let lights = context.scene.lights.clone();
-        let points = relight_render::convergence::SpacePoints::of(&context);
-        let one_bounce = PathSettings {
-            max_bounces: 1,
-            ..PathSettings::default()
-        };
-        let reference = relight_technique::reference_irradiance_at(
-            &context,
-            &lights,
-            one_bounce,
-            256,
-            &points.positions,
-            &points.normals,
-            &NoProgress,
-        );
-        let mut technique = LightSkinKind
-            .create(context.clone(), None, &[], &NoProgress)
-            .unwrap();
-        technique
-            .update(&Frame {
-                lights: &lights,
-                index: 0,
-            })
-            .unwrap();
-        let values: Vec<Rgb> = points
-            .positions
-            .iter()
-            .zip(&points.normals)
-            .map(|(&position, &normal)| technique.indirect_irradiance_in_space(position, normal))
-            .collect();
-        let error = relight_render::metrics::error_norms(&values, &reference.mean).relative_rmse;
+        let technique = updated(&context, LightSkinParams::default());
+        let error = relight_render::convergence::space_error(&context, &technique, 256);
         eprintln!("{scene}: points in space relRMSE {error:.3} against one bounce");
         assert!(error < 0.3, "{scene}: {error}");
     }
@@ -745,24 +716,15 @@ fn points_in_space_gather_one_bounce_from_the_surfaces_around_them() {
 /// the cameras' resolution the reference's own tile noise is about 2 %.
 #[test]
 fn closed_boxes_within_fifteen_percent_over_tiles_of_one_bounce() {
-    for scene in relight_render::convergence::CLOSED_BOXES {
-        let context = relight_render::convergence::shipped_context(scene, 2);
-        let technique = updated(&context, LightSkinParams::default());
-        let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
-            &context, &technique, 256, 256,
-        );
-        println!(
-            "{scene}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
-            measured.image_tiles * 100.0,
-            noise.image_tiles * 100.0,
-            measured.light_ratio
-        );
+    let measured = relight_render::convergence::closed_box_measurements(|context, _| {
+        Box::new(updated(context, LightSkinParams::default()))
+    });
+    for (scene, measured) in measured {
         let bound = if scene == "cornell-box-point/scene.toml" {
             0.17
         } else {
             0.15
         };
-        assert!(noise.image_tiles < 0.03, "{scene}: {}", noise.image_tiles);
         assert!(
             measured.image_tiles <= bound,
             "{scene}: {}",

@@ -365,7 +365,12 @@ fn chroma_grid_and_glossy_lookups() {
     let context = context("corridor");
     let full = pic(
         &context,
-        &[("bands", "4"), ("surfels", "8192"), ("links", "64")],
+        &[
+            ("bands", "4"),
+            ("surfels", "8192"),
+            ("links", "64"),
+            ("space", "grid"),
+        ],
     );
     let compressed = pic(
         &context,
@@ -536,26 +541,31 @@ fn damaged_bakes_never_panic() {
 /// corridor).
 #[test]
 fn closed_boxes_within_eight_percent_over_tiles_at_the_high_preset() {
-    for scene in relight_render::convergence::CLOSED_BOXES {
-        let context = relight_render::convergence::shipped_context(scene, 2);
-        let technique = pic(&context, &[("preset", "high")]);
-        let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
-            &context,
-            technique.as_ref(),
-            256,
-            256,
-        );
-        println!(
-            "{scene}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
-            measured.image_tiles * 100.0,
-            noise.image_tiles * 100.0,
-            measured.light_ratio
-        );
-        assert!(noise.image_tiles < 0.03, "{scene}: {}", noise.image_tiles);
+    let measured = relight_render::convergence::closed_box_measurements(|context, _| {
+        pic(context, &[("preset", "high")])
+    });
+    for (scene, measured) in measured {
         assert!(
             measured.image_tiles <= 0.08,
             "{scene}: {}",
             measured.image_tiles
         );
+    }
+}
+
+/// Points in space gather the light leaving the surfaces around them (each
+/// hit's direct light plus the lightmap caches' indirect light there). The
+/// grid's trilinear blend of caches crosses walls: relight converge SCENE
+/// -t pic --sweep space=grid,gather measured 13.7 -> 9.8 % on two-rooms,
+/// 16.8 -> 14.9 % on the corridor and 70.6 -> 18.3 % on Sponza. The bound
+/// is the 20 % for PIC; 256 reference paths add about 5 % noise.
+#[test]
+fn points_in_space_gather_the_lightmap() {
+    for scene in ["two-rooms", "corridor"] {
+        let context = context(scene);
+        let technique = pic(&context, &[]);
+        let error = relight_render::convergence::space_error(&context, technique.as_ref(), 256);
+        eprintln!("{scene}: points in space relRMSE {error:.4}");
+        assert!(error < 0.2, "{scene}: {error}");
     }
 }

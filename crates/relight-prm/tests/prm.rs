@@ -451,29 +451,9 @@ fn points_in_space_gather_the_lightmap() {
     // 256 reference paths add about 5 % of noise.
     for scene in ["two-rooms", "corridor"] {
         let context = context(scene, 64);
-        let lights = context.scene.lights.clone();
-        let points = relight_render::convergence::SpacePoints::of(&context);
-        let reference = relight_technique::reference_irradiance_at(
-            &context,
-            &lights,
-            PathSettings::default(),
-            256,
-            &points.positions,
-            &points.normals,
-            &NoProgress,
-        );
         let prm = baked_and_updated(&context);
-        let values: Vec<relight_core::Rgb> = points
-            .positions
-            .iter()
-            .zip(&points.normals)
-            .map(|(&position, &normal)| prm.indirect_irradiance_in_space(position, normal))
-            .collect();
-        let error = error_norms(&values, &reference.mean).relative_rmse;
-        eprintln!(
-            "{scene}: points in space relRMSE {error:.4} over {} point-normal pairs",
-            values.len()
-        );
+        let error = relight_render::convergence::space_error(&context, prm.as_ref(), 256);
+        eprintln!("{scene}: points in space relRMSE {error:.4}");
         assert!(error < 0.3, "{scene}: {error}");
     }
 }

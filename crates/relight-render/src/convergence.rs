@@ -619,3 +619,58 @@ pub fn shipped_context(relative: &str, shrink: u32) -> std::sync::Arc<SceneConte
     };
     std::sync::Arc::new(SceneContext::new(scene, settings).expect("the scene's lightmap builds"))
 }
+
+/// relRMSE of `technique.indirect_irradiance_in_space` at the
+/// [`SpacePoints`] of `context`, against the path tracer with as many
+/// bounces as the technique computes and `samples` paths a point.
+pub fn space_error(context: &SceneContext, technique: &dyn Technique, samples: u32) -> f64 {
+    let points = SpacePoints::of(context);
+    let settings = PathSettings {
+        max_bounces: technique.reference_bounces(PathSettings::default().max_bounces),
+        ..PathSettings::default()
+    };
+    let reference = reference_irradiance_at(
+        context,
+        &context.scene.lights,
+        settings,
+        samples,
+        &points.positions,
+        &points.normals,
+        &relight_technique::NoProgress,
+    );
+    let values: Vec<Rgb> = points
+        .positions
+        .iter()
+        .zip(&points.normals)
+        .map(|(&position, &normal)| technique.indirect_irradiance_in_space(position, normal))
+        .collect();
+    error_norms(&values, &reference.mean).relative_rmse
+}
+
+/// Each of [`CLOSED_BOXES`] at half its camera's resolution, with the
+/// technique `make` returns for it (updated under the scene's lights)
+/// measured by [`measure_against_path_tracer`] at 256 paths: what the
+/// techniques' tests hold to the bounds. Prints each scene's
+/// 8x8-tile error, and fails when the reference's own tile noise exceeds
+/// 3 %, where it would blur the bound.
+pub fn closed_box_measurements(
+    make: impl Fn(&std::sync::Arc<SceneContext>, &str) -> Box<dyn Technique>,
+) -> Vec<(&'static str, Measurement)> {
+    CLOSED_BOXES
+        .iter()
+        .map(|&scene| {
+            let context = shipped_context(scene, 2);
+            let technique = make(&context, scene);
+            let (measured, noise) =
+                measure_against_path_tracer(&context, technique.as_ref(), 256, 256);
+            println!(
+                "{scene}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
+                measured.image_tiles * 100.0,
+                noise.image_tiles * 100.0,
+                measured.light_ratio
+            );
+            assert!(noise.image_tiles < 0.03, "{scene}: {}", noise.image_tiles);
+            (scene, measured)
+        })
+        .collect()
+}

@@ -726,7 +726,6 @@ fn cluster_matrix(
     (matrix, columns, valid_samples)
 }
 
-#[allow(clippy::too_many_arguments)]
 /// How clusters whose principal vectors keep too little of their
 /// transport's energy are halved and compressed again.
 struct ClusterSplit<'a> {

@@ -782,29 +782,9 @@ fn points_in_space_gather_the_lightmap() {
     // issue's 20 % for SRP; 256 reference paths add about 5 % of noise.
     for scene in ["two-rooms", "corridor"] {
         let context = context(scene);
-        let lights = context.scene.lights.clone();
-        let points = relight_render::convergence::SpacePoints::of(&context);
-        let reference = relight_technique::reference_irradiance_at(
-            &context,
-            &lights,
-            PathSettings::default(),
-            256,
-            &points.positions,
-            &points.normals,
-            &NoProgress,
-        );
         let technique = srp(&context, &[("order", "2"), ("samples", "256")]);
-        let values: Vec<Rgb> = points
-            .positions
-            .iter()
-            .zip(&points.normals)
-            .map(|(&position, &normal)| technique.indirect_irradiance_in_space(position, normal))
-            .collect();
-        let error = error_norms(&values, &reference.mean).relative_rmse;
-        eprintln!(
-            "{scene}: points in space relRMSE {error:.4} over {} point-normal pairs",
-            values.len()
-        );
+        let error = relight_render::convergence::space_error(&context, technique.as_ref(), 256);
+        eprintln!("{scene}: points in space relRMSE {error:.4}");
         assert!(error < 0.2, "{scene}: {error}");
     }
 }
@@ -819,27 +799,14 @@ fn points_in_space_gather_the_lightmap() {
 /// the corridor measured 13.0 % and the area-lit box 8.0 %.
 #[test]
 fn closed_boxes_within_eight_percent_over_tiles_at_order_seven() {
-    for scene in relight_render::convergence::CLOSED_BOXES {
-        let context = relight_render::convergence::shipped_context(scene, 2);
-        let params: &[(&str, &str)] = if scene.contains("corner-light") {
-            &[("probe_count", "64")]
+    let measured = relight_render::convergence::closed_box_measurements(|context, scene| {
+        if scene.contains("corner-light") {
+            srp(context, &[("probe_count", "64")])
         } else {
-            &[]
-        };
-        let technique = srp(&context, params);
-        let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
-            &context,
-            technique.as_ref(),
-            256,
-            256,
-        );
-        println!(
-            "{scene}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
-            measured.image_tiles * 100.0,
-            noise.image_tiles * 100.0,
-            measured.light_ratio
-        );
-        assert!(noise.image_tiles < 0.03, "{scene}: {}", noise.image_tiles);
+            srp(context, &[])
+        }
+    });
+    for (scene, measured) in measured {
         assert!(
             measured.image_tiles <= 0.08,
             "{scene}: {}",
