@@ -5,7 +5,8 @@
 //!
 //! Data flow: the reference (per bounce count the swept settings need) is
 //! traced once and cached under a key of everything that changes it; each
-//! setting of the sweep's Cartesian product is baked, updated under the
+//! setting of the sweep's Cartesian product is baked (once for settings
+//! that differ only in run-time parameters), updated under the
 //! scene's lights, rendered and measured (see
 //! [`relight_render::convergence`]).
 
@@ -103,6 +104,23 @@ struct Row {
     measurement: Measurement,
 }
 
+/// The parameter pairs that decide a bake.
+type BakeKey = Vec<(String, String)>;
+
+/// The pairs that decide a bake: the bake parameters' final values, or
+/// every pair when the technique names none.
+fn bake_key(bake_parameters: &[&str], pairs: &[(String, String)]) -> BakeKey {
+    let mut last: BTreeMap<&str, &str> = BTreeMap::new();
+    for (key, value) in pairs {
+        if bake_parameters.is_empty() || bake_parameters.contains(&key.as_str()) {
+            last.insert(key, value);
+        }
+    }
+    last.into_iter()
+        .map(|(key, value)| (key.to_string(), value.to_string()))
+        .collect()
+}
+
 pub fn run(
     context: &Arc<SceneContext>,
     scene_path: &Path,
@@ -134,6 +152,8 @@ pub fn run(
     let mut references: BTreeMap<u32, ReferenceSet> = BTreeMap::new();
     let lights = context.scene.lights.clone();
     let mut rows = Vec::new();
+    // Settings that differ only in run-time parameters share one bake.
+    let mut last_bake: Option<(BakeKey, Vec<u8>)> = None;
     for (index, swept) in combinations(&sweeps).into_iter().enumerate() {
         let mut pairs = fixed.clone();
         pairs.extend(swept.iter().cloned());
@@ -150,13 +170,17 @@ pub fn run(
             eprintln!("== {setting}");
         }
         let start = Instant::now();
-        let payload = if kind.needs_bake() {
-            Some(
-                kind.bake(context, &pairs, &bars)
-                    .with_context(|| format!("baking {} with {setting}", kind.name()))?,
-            )
-        } else {
-            None
+        let bake_key = bake_key(kind.bake_parameters(), &pairs);
+        let payload = match &last_bake {
+            _ if !kind.needs_bake() => None,
+            Some((key, payload)) if *key == bake_key => Some(payload.clone()),
+            _ => {
+                let payload = kind
+                    .bake(context, &pairs, &bars)
+                    .with_context(|| format!("baking {} with {setting}", kind.name()))?;
+                last_bake = Some((bake_key, payload.clone()));
+                Some(payload)
+            }
         };
         let bake_seconds = start.elapsed().as_secs_f64();
         let mut instance = kind

@@ -9,8 +9,8 @@ use relight_core::{sh, Rgb};
 use relight_scene::atlas::{Atlas, TexelDensity};
 use relight_scene::Light;
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
-    TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
+    SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use std::f32::consts::PI;
 use std::sync::{Arc, OnceLock};
@@ -32,6 +32,8 @@ pub struct RuntimeSettings {
     /// Points in space gather the light leaving the surfaces around them;
     /// `None`: they read the grid caches.
     pub space_gather: Option<SurfaceGather>,
+    /// Which receivers near other geometry trace their near field.
+    pub final_gather: FinalGatherSettings,
 }
 
 pub struct Pic {
@@ -49,6 +51,9 @@ pub struct Pic {
     own_atlas: Option<Atlas>,
     /// Texel -> lightmap cache, gutters pointing at the cache they copy.
     cache_of_texel: Vec<u32>,
+    /// Traced near field of the receivers close to other geometry, added
+    /// to the caches' light as a correction lightmap.
+    final_gather: FinalGather,
     /// Per surfel: four lightmap taps (cache, weight).
     surfel_taps: Vec<[(u32, f32); 4]>,
     /// Per surfel: A_l Y_lm(normal), `bands^2` values.
@@ -167,6 +172,12 @@ impl Pic {
             lights: Vec::new(),
             cache_of_texel,
             own_atlas,
+            final_gather: FinalGather::build(
+                &context,
+                settings.final_gather,
+                bake.caches.lightmap_count,
+                true,
+            ),
             context,
             settings,
             bake,
@@ -555,6 +566,33 @@ impl Pic {
     }
 
     /// Diffuse irradiance (RGB) at a point of the static scene.
+    /// The caches' light at lightmap receiver `index`.
+    fn receiver_cached_irradiance(&self, index: u32) -> Rgb {
+        let receivers = &self.context.atlas.receivers;
+        let index = index as usize;
+        self.surface_irradiance(
+            receivers.triangles[index],
+            receivers.barycentrics[index],
+            receivers.normals[index],
+        )
+    }
+
+    /// Runs the final gather over the caches' light (hits reflect direct
+    /// light alone with one bounce).
+    fn gather_near_field(&mut self) {
+        if self.final_gather.is_empty() {
+            return;
+        }
+        let mut final_gather = std::mem::take(&mut self.final_gather);
+        final_gather.update(
+            &self.context,
+            &self.lights,
+            |receiver| self.receiver_cached_irradiance(receiver),
+            self.settings.bounces > 1,
+        );
+        self.final_gather = final_gather;
+    }
+
     fn surface_irradiance(&self, triangle: u32, barycentric: Vec2, normal: Vec3) -> Rgb {
         let taps = self.lightmap_taps(triangle, barycentric);
         ycocg_to_rgb(self.lookup(&taps, normal, &self.cosine_factors)).max(Rgb::ZERO)
@@ -815,17 +853,27 @@ impl Technique for Pic {
             self.light_caches();
             cache_time += start.elapsed();
         }
+        let start = Instant::now();
+        self.gather_near_field();
+        let gather_time = start.elapsed();
         self.timings.clear();
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
         self.timings.stages.push(("cache lighting", cache_time));
+        if !self.final_gather.is_empty() {
+            self.timings.stages.push(("final gather", gather_time));
+        }
         self.receiver_values = OnceLock::new();
         self.updates += 1;
         Ok(())
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        self.surface_irradiance(point.triangle, point.barycentric, point.normal)
+        let cached = self.surface_irradiance(point.triangle, point.barycentric, point.normal);
+        let correction =
+            self.final_gather
+                .correction(&self.context, point.triangle, point.barycentric);
+        (cached + correction).max(Rgb::ZERO)
     }
 
     /// Gathered from the surfaces around the point (each hit's direct
@@ -868,17 +916,12 @@ impl Technique for Pic {
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
         Some(self.receiver_values.get_or_init(|| {
-            let receivers = &self.context.atlas.receivers;
-            (0..receivers.len())
+            let mut values: Vec<Rgb> = (0..self.context.atlas.receivers.len() as u32)
                 .into_par_iter()
-                .map(|index| {
-                    self.surface_irradiance(
-                        receivers.triangles[index],
-                        receivers.barycentrics[index],
-                        receivers.normals[index],
-                    )
-                })
-                .collect()
+                .map(|index| self.receiver_cached_irradiance(index))
+                .collect();
+            self.final_gather.apply(&mut values);
+            values
         }))
     }
 
@@ -889,7 +932,7 @@ impl Technique for Pic {
     fn memory(&self) -> Vec<MemoryEntry> {
         let bake = &self.bake;
         let surfels = bake.surfels.len();
-        vec![
+        let mut entries = vec![
             MemoryEntry::new(
                 "surfels (position, normal, albedo, direct, area light)",
                 surfels * (12 * 5),
@@ -913,7 +956,9 @@ impl Technique for Pic {
                 "surfel lightmap taps and basis",
                 self.surfel_taps.len() * 32 + self.surfel_basis.len() * 4,
             ),
-        ]
+        ];
+        entries.extend(self.final_gather.memory_entry());
+        entries
     }
 
     fn bake_facts(&self) -> Vec<(&'static str, String)> {

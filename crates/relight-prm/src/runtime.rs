@@ -7,8 +7,8 @@ use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use relight_core::{luminance, Rgb};
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
-    TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
+    SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::direct::{DirectLight, DirectSettings};
 use std::sync::Arc;
@@ -37,6 +37,8 @@ pub struct Prm {
     /// The lights of the last update, for gathers at points in space.
     lights: Vec<relight_scene::Light>,
     space_gather: SurfaceGather,
+    /// Traced near field of the receivers close to other geometry.
+    final_gather: FinalGather,
     /// Per cluster, the factor its weight's luminance is ranked by: 1 for
     /// the paper's ranking by weight, the pane's total luminance for ranking
     /// by contribution.
@@ -62,6 +64,7 @@ impl Prm {
         selection: Selection,
         entry_area_samples: u32,
         space_rays: u32,
+        final_gather: FinalGatherSettings,
     ) -> Self {
         let ranking_scale = match selection {
             Selection::Weight => vec![1.0; bake.cluster_count],
@@ -105,6 +108,8 @@ impl Prm {
             (top_k as usize).min(bake.cluster_count)
         };
         let receivers = bake.receiver_count;
+        let final_gather =
+            FinalGather::build(&context, final_gather, bake.entry_positions.len(), false);
         Self {
             entry_irradiance: vec![Rgb::ZERO; bake.entry_positions.len()],
             cluster_weights: vec![Rgb::ZERO; bake.cluster_count],
@@ -116,12 +121,13 @@ impl Prm {
             },
             receiver_values: vec![Rgb::ZERO; receivers],
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
-            context,
             bake,
             top_k,
             timings: StageTimings::default(),
             lights: Vec::new(),
             space_gather: SurfaceGather::new(space_rays),
+            final_gather,
+            context,
             ranking_scale,
         }
     }
@@ -304,6 +310,18 @@ impl Technique for Prm {
             }
             sum_panes(&bake.panes, bake.receiver_count, terms, receiver_values)
         });
+        let final_gather = &mut self.final_gather;
+        if !final_gather.is_empty() {
+            self.timings.time("final gather", || {
+                final_gather.update(
+                    context,
+                    frame.lights,
+                    |receiver| receiver_values[receiver as usize],
+                    true,
+                );
+                final_gather.apply(receiver_values);
+            });
+        }
         let lightmap = &mut self.lightmap;
         self.timings.time("dilation", || {
             context.atlas.scatter_into(receiver_values, lightmap);
@@ -334,7 +352,7 @@ impl Technique for Prm {
 
     fn memory(&self) -> Vec<MemoryEntry> {
         let bake = &self.bake;
-        vec![
+        let mut entries = vec![
             MemoryEntry::new(
                 if bake.rank > 0 {
                     "basis panes (f16 RGB)"
@@ -351,7 +369,9 @@ impl Technique for Prm {
             MemoryEntry::new("clusters", bake.cluster_count * (12 * 4)),
             MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
             MemoryEntry::new("lightmap", self.lightmap.len() * 12),
-        ]
+        ];
+        entries.extend(self.final_gather.memory_entry());
+        entries
     }
 }
 

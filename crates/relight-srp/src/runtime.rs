@@ -11,8 +11,8 @@ use rayon::prelude::*;
 use relight_core::{sh, Rgb, Rgb9e5};
 use relight_scene::Light;
 use relight_technique::{
-    Frame, MemoryEntry, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
-    TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
+    SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
@@ -30,6 +30,8 @@ pub struct RuntimeSettings {
     pub specular: f32,
     /// Gather rays per point in space.
     pub space_rays: u32,
+    /// Which receivers near other geometry trace their near field.
+    pub final_gather: FinalGatherSettings,
 }
 
 pub struct Srp {
@@ -102,6 +104,9 @@ pub struct Srp {
     /// space from the light leaving the surfaces around them.
     lights: Vec<Light>,
     space_gather: SurfaceGather,
+    /// Traced near field of the receivers close to other geometry; its
+    /// values overwrite their lightmap slots after reconstruction.
+    final_gather: FinalGather,
 }
 
 /// Puts the probe-visible receivers (the texels whose direct light every
@@ -228,11 +233,41 @@ impl Srp {
             updates: 0,
             lights: Vec::new(),
             space_gather: SurfaceGather::new(settings.space_rays),
+            final_gather: FinalGather::build(
+                &context,
+                settings.final_gather,
+                bake.probes.len(),
+                false,
+            ),
             coefficients,
             settings,
             context,
             bake,
         }
+    }
+
+    /// The lightmap slot of receiver `index`.
+    fn slot_of_receiver(&self, index: u32) -> usize {
+        let [x, y] = self.context.atlas.receivers.texels[index as usize];
+        self.slot_of_texel[(y * self.context.atlas.width + x) as usize] as usize
+    }
+
+    /// Runs the final gather over the reconstructed lightmap and writes
+    /// its values into the gathering receivers' slots (hits reflect
+    /// direct light alone with one bounce).
+    fn gather_near_field(&mut self) {
+        let mut final_gather = std::mem::take(&mut self.final_gather);
+        final_gather.update(
+            &self.context,
+            &self.lights,
+            |receiver| self.irradiance[self.slot_of_receiver(receiver)].to_rgb(),
+            self.settings.bounces > 1,
+        );
+        for (&receiver, &value) in final_gather.receivers().iter().zip(final_gather.values()) {
+            let slot = self.slot_of_receiver(receiver);
+            self.irradiance[slot] = Rgb9e5::from_rgb(value);
+        }
+        self.final_gather = final_gather;
     }
 
     /// The probe radiance vector (lambda) after the last update.
@@ -760,6 +795,9 @@ impl Technique for Srp {
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }
+        if !self.final_gather.is_empty() {
+            timings.time("final gather", || self.gather_near_field());
+        }
         self.timings = timings;
         self.updates += 1;
         Ok(())
@@ -891,7 +929,7 @@ impl Technique for Srp {
 
     fn memory(&self) -> Vec<MemoryEntry> {
         let bake = &self.bake;
-        vec![
+        let mut entries = vec![
             MemoryEntry::new(
                 "cluster projection matrices (f16)",
                 bake.clusters.projection.len() * 2,
@@ -935,7 +973,9 @@ impl Technique for Srp {
                     + self.radiance_light_basis.len() * 4
                     + self.glossy_slot_of_texel.len() * 4,
             ),
-        ]
+        ];
+        entries.extend(self.final_gather.memory_entry());
+        entries
     }
 }
 

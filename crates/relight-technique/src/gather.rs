@@ -7,8 +7,8 @@
 //! and a wall between a light and the point stops that light.
 
 use crate::{SceneContext, SurfacePoint};
-use glam::{Vec2, Vec3};
-use relight_core::sampling::{cosine_hemisphere, orthonormal_basis, radical_inverse};
+use glam::Vec3;
+use relight_core::sampling::orthonormal_basis;
 use relight_core::Rgb;
 use relight_scene::Light;
 use relight_trace::Ray;
@@ -24,16 +24,8 @@ pub struct SurfaceGather {
 
 impl SurfaceGather {
     pub fn new(rays: u32) -> Self {
-        let rays = rays.max(1);
         Self {
-            local_directions: (0..rays)
-                .map(|index| {
-                    cosine_hemisphere(Vec2::new(
-                        (index as f32 + 0.5) / rays as f32,
-                        radical_inverse(2, index as u64) as f32,
-                    ))
-                })
-                .collect(),
+            local_directions: crate::final_gather::gather_directions(rays),
         }
     }
 

@@ -155,6 +155,13 @@ pub trait TechniqueKind: Sync {
     fn summary(&self) -> &'static str;
     fn needs_bake(&self) -> bool;
 
+    /// The parameters the bake reads; the rest act at run time, so one bake
+    /// serves every value of them. Empty: every parameter may change the
+    /// bake.
+    fn bake_parameters(&self) -> &'static [&'static str] {
+        &[]
+    }
+
     /// Precomputes the bake payload (technique-specific bytes).
     fn bake(
         &self,

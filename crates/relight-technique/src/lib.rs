@@ -15,6 +15,7 @@
 mod bakefile;
 mod builtin;
 mod context;
+mod final_gather;
 mod gather;
 mod interface;
 mod params;
@@ -29,6 +30,7 @@ pub use builtin::{
     ReferenceLightmap, ReferenceParams,
 };
 pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
+pub use final_gather::{FinalGather, FinalGatherSettings, GatherReach};
 pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
