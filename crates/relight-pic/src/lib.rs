@@ -327,10 +327,9 @@ impl PicParams {
             specular: self.specular,
             space_gather: (self.space == "gather").then(|| SurfaceGather::new(self.space_rays)),
             // validate() has checked it.
-            final_gather: self.final_gather_settings().unwrap_or(FinalGatherSettings {
-                reach_texels: Some(0.0),
-                rays: 1,
-            }),
+            final_gather: self
+                .final_gather_settings()
+                .unwrap_or(FinalGatherSettings::OFF),
         }
     }
 }

@@ -317,10 +317,7 @@ impl SrpParams {
                 &self.final_gather,
                 self.final_gather_rays,
             )
-            .unwrap_or(FinalGatherSettings {
-                reach_texels: Some(0.0),
-                rays: 1,
-            }),
+            .unwrap_or(FinalGatherSettings::OFF),
         }
     }
 }

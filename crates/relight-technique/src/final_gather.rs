@@ -106,6 +106,13 @@ pub const AUTOMATIC_RAY_BUDGET: usize = 1 << 23;
 const LEAST_RAYS: u32 = 64;
 
 impl FinalGatherSettings {
+    /// No gather: what a technique falls back to where its parameters were
+    /// not validated.
+    pub const OFF: Self = Self {
+        reach_texels: Some(0.0),
+        rays: 1,
+    };
+
     /// The settings from the parameters `final_gather` and
     /// `final_gather_rays`, or what is wrong with them in words for the
     /// user.
