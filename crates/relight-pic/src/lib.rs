@@ -52,6 +52,7 @@
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent |
 //! | `space` | `gather` | points in space: `gather` the light leaving the surfaces around them over `space_rays` fixed rays, or read the `grid` caches (the paper; cheaper, but it leaks through walls) |
 //! | `space_rays` | 64 | gather rays per point in space |
+//! | `cache_visibility` | true | receivers and surfels drop the bilinear lightmap caches they cannot see (one ray each at load; see the limits below); false: the paper's plain bilinear lookup (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the lightmap caches over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
 //! | `seed` | 1 | |
@@ -85,11 +86,31 @@
 //!   camera-visible lightmap 48.8 -> 21.7 %, light 0.745 -> 0.879x; the
 //!   living room 33.2 -> 20.4 % and 47.6 -> 24.3 % (`relight converge
 //!   SCENE -t pic --sweep final_gather=0,auto`). `final_gather=inf`
-//!   (every texel) gives 13.0 % on Sponza. What remains on Sponza is the
-//!   interior receivers' excess (1.17x), far-field light the cut carries
-//!   through coarse nodes; `links` lowers the error up to about 256
-//!   (Sponza tiles without the gather 47 / 35 / 33 / 32 % at 64 / 128 /
-//!   256 / 512).
+//!   (every texel) gives 13.0 % on Sponza.
+//! - The interior excess on Sponza (1.28x over all receivers, 62 % of
+//!   PIC high's squared lightmap error) was not the cut: `links` 254 /
+//!   512 / 1024 left it at 1.28 / 1.26 / 1.26x. It was the walls of the
+//!   closed attics under the aisle roofs (2.9x; the path tracer has them
+//!   nearly black), whose texels blend metre-wide cache texels standing in
+//!   the sunlit court above the roof line. A receiver or surfel now drops
+//!   the bilinear taps whose caches it cannot see (one ray each, at load;
+//!   both ends a tenth of a cache texel off their surfaces), and shading
+//!   adds the difference as a correction lightmap. Sponza (sun), PIC high:
+//!   lightmap 45.7 -> 23.7 %, interior 1.28 -> 0.99x, points in space
+//!   15.3 -> 13.5 % (1.04 -> 0.99x); camera-visible lightmap 19.9 ->
+//!   20.0 % and tiles 14.7 -> 14.8 % (the camera sees no attic). Two-rooms
+//!   seen from the unlit room (defaults): tiles 11.1 -> 10.2 %, light
+//!   0.890 -> 0.903x. Living room, high: tiles 18.1 -> 17.4 %. Where the
+//!   cache atlas is too coarse to hold a cache on the near side of a wall
+//!   nothing is left to keep: two-rooms' floor by the dividing wall gets
+//!   1.00x the path tracer's light with 1024 caches (1.69x with
+//!   `cache_visibility=false`) but 2.7x with 256.
+//! - The top-down cut keeps a child only if one of its samples (16, then
+//!   64) sees it, so children seen through a small part are dropped and
+//!   their light lost: on the living room, PIC high's light ratio is
+//!   0.848 / 0.863 / 0.873x and its tiles 17.4 / 15.4 / 14.1 % at
+//!   `node_samples` 16 / 64 / 256 (bake 47 / 93 / 196 s). Keeping unseen
+//!   children as links instead leaks on Sponza (tiles 14.8 -> 18.1 %).
 
 // SH loops index several per-band arrays by band number on purpose.
 #![allow(clippy::needless_range_loop)]
@@ -159,6 +180,7 @@ pub struct PicParams {
     pub specular: f32,
     pub space: String,
     pub space_rays: u32,
+    pub cache_visibility: bool,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
     pub seed: u64,
@@ -189,6 +211,7 @@ impl Default for PicParams {
             specular: 0.0,
             space: "gather".into(),
             space_rays: 64,
+            cache_visibility: true,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
             seed: 1,
@@ -326,6 +349,7 @@ impl PicParams {
             area_lights_through_links: self.area_lights == "links",
             specular: self.specular,
             space_gather: (self.space == "gather").then(|| SurfaceGather::new(self.space_rays)),
+            cache_visibility: self.cache_visibility,
             // validate() has checked it.
             final_gather: self
                 .final_gather_settings()

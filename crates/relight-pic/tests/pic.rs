@@ -569,3 +569,61 @@ fn points_in_space_gather_the_lightmap() {
         assert!(error < 0.2, "{scene}: {error}");
     }
 }
+
+/// The floor of two-rooms is one quad under the dividing wall, so a cache
+/// atlas coarser than the wall is thick puts lit room A's caches and room
+/// B's in the same bilinear footprint. Room B's floor next to the wall
+/// (x = 4.2 .. 4.9, away from the doorway) must not take room A's light:
+/// with `cache_visibility` its receivers drop the caches beyond the wall.
+/// The gather is off so that the lookup alone is measured. Measured with
+/// 1024 caches (texels of about 0.4 m): 0.996x the path tracer's light
+/// with the visibility test, 1.688x without; the bounds leave room for
+/// PIC's usual shortfall (0.77x with a cache per texel) and the
+/// reference's noise (1024 paths over 50+ receivers: well under 1 %).
+/// With 256 caches (0.8 m) the floor strip gets 2.4-2.7x either way: a
+/// cache atlas that coarse has no cache of room B near the wall to keep.
+#[test]
+fn receivers_do_not_blend_caches_beyond_a_wall() {
+    let context = context("two-rooms");
+    let receivers = &context.atlas.receivers;
+    let near_wall: Vec<usize> = (0..receivers.len())
+        .filter(|&i| {
+            let (position, normal) = (receivers.positions[i], receivers.normals[i]);
+            position.x > 4.2
+                && position.x < 4.9
+                && (position.z < 1.2 || position.z > 2.8)
+                && normal.y > 0.9
+                && position.y < 0.1
+        })
+        .collect();
+    assert!(near_wall.len() > 50, "{}", near_wall.len());
+    let mean = |values: &[Rgb]| {
+        near_wall
+            .iter()
+            .map(|&i| luminance(values[i]) as f64)
+            .sum::<f64>()
+            / near_wall.len() as f64
+    };
+    let truth = mean(&reference(&context, 1024));
+    let ratio = |visibility: &str| {
+        let technique = pic(
+            &context,
+            &[
+                ("lightmap_caches", "1024"),
+                ("surfels", "16384"),
+                ("final_gather", "0"),
+                ("cache_visibility", visibility),
+            ],
+        );
+        mean(technique.receiver_irradiance().unwrap()) / truth
+    };
+    let (seen, blended) = (ratio("true"), ratio("false"));
+    println!(
+        "room B's floor by the wall over the path tracer: caches it sees {seen:.3}, all four {blended:.3}"
+    );
+    assert!((0.7..1.15).contains(&seen), "{seen}");
+    assert!(
+        blended > 1.4,
+        "the leak this test is about is gone: {blended}"
+    );
+}
