@@ -258,8 +258,8 @@ impl ObjBuilder {
         self.grid(1, 1, |u, v| corner(v, 1.0, u)); // top, +Y
         self.grid(1, 1, |u, v| corner(v, u, 0.0)); // -Z
         self.grid(1, 1, |u, v| corner(u, v, 1.0)); // +Z
-        self.grid(1, 1, |u, v| corner(0.0, u, v)); // -X
-        self.grid(1, 1, |u, v| corner(1.0, v, u)); // +X
+        self.grid(1, 1, |u, v| corner(0.0, v, u)); // -X
+        self.grid(1, 1, |u, v| corner(1.0, u, v)); // +X
     }
 }
 
@@ -397,15 +397,18 @@ fn build_arch(builder: &mut ObjBuilder, detail: &Detail, centre: Vec3, top_y: f3
     };
     let segments = detail.arch_segments();
     let half_depth = ARCH_DEPTH * 0.5;
+    // The intrados faces down into the opening: du runs along the arc
+    // from the left springing, dv along +Z.
     builder.grid(segments, 1, |u, v| {
-        arc(u) + Vec3::Z * (half_depth - 2.0 * half_depth * v)
+        arc(u) + Vec3::Z * (2.0 * half_depth * v - half_depth)
     });
     for face_z in [-half_depth, half_depth] {
         builder.grid(segments, 1, |u, v| {
             let low = arc(u);
             let point = low.lerp(Vec3::new(low.x, top_y, low.z), v);
-            // Swap u so that both faces point away from the arch.
-            let point = if face_z < 0.0 {
+            // Along the arc du x dv (up) points +Z: the -Z face mirrors
+            // the grid so that it points away from the arch too.
+            let point = if face_z > 0.0 {
                 point
             } else {
                 arc_mirror(point, centre.x)
@@ -451,5 +454,87 @@ mod tests {
             .filter(|line| line.starts_with("f "))
             .count();
         assert_eq!(faces * 2, writer.triangles);
+    }
+
+    /// Every face of the atrium points out of its solid, so that from the
+    /// open court and the arcades a ray meets only front faces. The scene
+    /// contract lets back faces reflect too, but the atrium is the stand-in
+    /// for a well-made model: with the cuboids' +-X faces and the arches
+    /// wound inward, PIC put no surfels on the court's end walls (27 % of
+    /// them dropped as enclosed) and measured 0.57x of the path tracer's
+    /// light. Banners are single-sided cloth and may be seen from behind.
+    #[test]
+    fn faces_point_out_of_their_solids() {
+        let detail = choose_detail(12_000, 7);
+        let mut writer = ObjBuilder::new(false);
+        build_atrium(&mut writer, &detail, 7);
+        let mut vertices = Vec::new();
+        let mut triangles = Vec::new();
+        let mut banner = false;
+        for line in writer.text.lines() {
+            let mut words = line.split_whitespace();
+            match words.next() {
+                Some("v") => {
+                    let xyz: Vec<f32> = words.map(|word| word.parse().unwrap()).collect();
+                    vertices.push(Vec3::new(xyz[0], xyz[1], xyz[2]));
+                }
+                Some("usemtl") => banner = words.next().unwrap().starts_with("banner"),
+                Some("f") if !banner => {
+                    let corners: Vec<Vec3> = words
+                        .map(|word| vertices[word.parse::<usize>().unwrap() - 1])
+                        .collect();
+                    triangles.push([corners[0], corners[1], corners[2]]);
+                    triangles.push([corners[0], corners[2], corners[3]]);
+                }
+                _ => {}
+            }
+        }
+        // Nearest hit along the ray: its triangle's normal against the ray.
+        let nearest_is_back = |origin: Vec3, direction: Vec3| -> Option<bool> {
+            let mut best: Option<(f32, bool)> = None;
+            for [a, b, c] in &triangles {
+                let (edge1, edge2) = (*b - *a, *c - *a);
+                let p = direction.cross(edge2);
+                let determinant = edge1.dot(p);
+                if determinant.abs() < 1e-9 {
+                    continue;
+                }
+                let t_vector = origin - *a;
+                let u = t_vector.dot(p) / determinant;
+                let q = t_vector.cross(edge1);
+                let v = direction.dot(q) / determinant;
+                let t = edge2.dot(q) / determinant;
+                if u < 0.0 || v < 0.0 || u + v > 1.0 || t <= 1e-4 {
+                    continue;
+                }
+                if best.is_none_or(|(nearest, _)| t < nearest) {
+                    best = Some((t, edge1.cross(edge2).dot(direction) > 0.0));
+                }
+            }
+            best.map(|(_, back)| back)
+        };
+        let origins = [
+            Vec3::new(0.0, 3.0, 0.0),
+            Vec3::new(-9.0, 10.0, 1.0),
+            Vec3::new(1.5, 2.0, 5.8),
+            Vec3::new(-4.5, 8.5, -5.8),
+        ];
+        let directions = 400;
+        let (mut hits, mut back_hits) = (0, 0);
+        for origin in origins {
+            for index in 0..directions {
+                // A Fibonacci sphere.
+                let z = 1.0 - 2.0 * (index as f32 + 0.5) / directions as f32;
+                let radius = (1.0 - z * z).sqrt();
+                let angle = index as f32 * PI * (3.0 - 5f32.sqrt());
+                let direction = Vec3::new(radius * angle.cos(), z, radius * angle.sin());
+                if let Some(back) = nearest_is_back(origin, direction) {
+                    hits += 1;
+                    back_hits += back as usize;
+                }
+            }
+        }
+        assert!(hits > 1000, "{hits}");
+        assert_eq!(back_hits, 0, "{back_hits} of {hits} rays met a back face");
     }
 }
