@@ -68,8 +68,8 @@ pub struct Pic {
     /// receivers, as a dilated lightmap that shading adds to the
     /// bilinear cache lookup.
     tap_correction: Vec<Rgb>,
-    /// The atlas's dilation pairs that copy from those receivers' texels
-    /// (directly or through a chain): the rest of the map stays zero.
+    /// The atlas's dilation pairs for those receivers' texels
+    /// ([`Atlas::dilation_from`]): the rest of the map stays zero.
     tap_dilation: Vec<(u32, u32)>,
     /// Per surfel: A_l Y_lm(normal), `bands^2` values.
     surfel_basis: Vec<f32>,
@@ -332,20 +332,8 @@ impl Pic {
         if !self.hidden_tap_receivers.is_empty() {
             self.hidden_tap_index = index_of;
             let atlas = &self.context.atlas;
-            let mut affected = vec![false; (atlas.width * atlas.height) as usize];
-            for &receiver in &self.hidden_tap_receivers {
-                let [x, y] = receivers.texels[receiver as usize];
-                affected[(y * atlas.width + x) as usize] = true;
-            }
-            // A pair that writes over an affected texel stays too, so that
-            // the result is the full dilation's.
-            for &(target, source) in &atlas.dilation {
-                if affected[source as usize] || affected[target as usize] {
-                    affected[target as usize] = affected[source as usize];
-                    self.tap_dilation.push((target, source));
-                }
-            }
-            self.tap_correction = vec![Rgb::ZERO; affected.len()];
+            self.tap_dilation = atlas.dilation_from(self.hidden_tap_receivers.iter().copied());
+            self.tap_correction = vec![Rgb::ZERO; (atlas.width * atlas.height) as usize];
         }
     }
 
@@ -724,12 +712,10 @@ impl Pic {
         let receivers = &self.context.atlas.receivers;
         let index = index as usize;
         match self.hidden_tap_index.get(index) {
-            Some(&hidden) if hidden != NO_CACHE => ycocg_to_rgb(self.lookup(
+            Some(&hidden) if hidden != NO_CACHE => self.irradiance_of(
                 &self.hidden_tap_taps[hidden as usize],
                 receivers.normals[index],
-                &self.cosine_factors,
-            ))
-            .max(Rgb::ZERO),
+            ),
             _ => self.surface_irradiance(
                 receivers.triangles[index],
                 receivers.barycentrics[index],
@@ -755,8 +741,13 @@ impl Pic {
     }
 
     fn surface_irradiance(&self, triangle: u32, barycentric: Vec2, normal: Vec3) -> Rgb {
-        let taps = self.lightmap_taps(triangle, barycentric);
-        ycocg_to_rgb(self.lookup(&taps, normal, &self.cosine_factors)).max(Rgb::ZERO)
+        self.irradiance_of(&self.lightmap_taps(triangle, barycentric), normal)
+    }
+
+    /// RGB irradiance of the caches `taps` blend for a surface facing
+    /// `normal`.
+    fn irradiance_of(&self, taps: &[(u32, f32)], normal: Vec3) -> Rgb {
+        ycocg_to_rgb(self.lookup(taps, normal, &self.cosine_factors)).max(Rgb::ZERO)
     }
 
     /// The eight grid caches around `position` (culled ones dropped).
@@ -1067,8 +1058,7 @@ impl Technique for Pic {
                 }
             });
         }
-        let taps = self.grid_taps(position);
-        ycocg_to_rgb(self.lookup(&taps, normal, &self.cosine_factors)).max(Rgb::ZERO)
+        self.irradiance_of(&self.grid_taps(position), normal)
     }
 
     fn glossy_radiance(

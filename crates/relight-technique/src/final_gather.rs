@@ -159,6 +159,9 @@ pub struct FinalGather {
     /// values: the gather's change to each gathering receiver's light as a
     /// dilated lightmap (zero elsewhere), which shading adds.
     correction_map: Vec<Rgb>,
+    /// The atlas's dilation pairs for the gathering receivers' texels, the
+    /// only ones the correction map is not zero at.
+    correction_dilation: Vec<(u32, u32)>,
 }
 
 impl FinalGather {
@@ -318,6 +321,11 @@ impl FinalGather {
         };
         Self {
             correction_map: vec![Rgb::ZERO; map_size],
+            correction_dilation: if map_size > 0 {
+                context.atlas.dilation_from(gathering.iter().copied())
+            } else {
+                Vec::new()
+            },
             rays: samples.len(),
             values: vec![Rgb::ZERO; gathering.len()],
             receivers: gathering,
@@ -409,7 +417,9 @@ impl FinalGather {
                 let [x, y] = texels[receiver as usize];
                 self.correction_map[(y * width + x) as usize] = value - indirect_at(receiver);
             }
-            context.atlas.dilate(&mut self.correction_map);
+            for &(target, source) in &self.correction_dilation {
+                self.correction_map[target as usize] = self.correction_map[source as usize];
+            }
         }
     }
 
@@ -450,6 +460,7 @@ impl FinalGather {
             + self.slot_receivers.len() * (4 + 1 + 12 + 12 + 12 + 12 + 12)
             + self.values.len() * 12
             + self.correction_map.len() * 12
+            + self.correction_dilation.len() * 8
     }
 
     /// How many receivers gather and how many texels their rays hit.
