@@ -922,12 +922,12 @@ fn texel_albedo(
 }
 
 fn covered_centroid(uvs: &[Vec2; 3], texel_min: Vec2) -> Option<Vec2> {
-    let mut polygon = vec![
-        texel_min,
-        texel_min + Vec2::X,
-        texel_min + Vec2::ONE,
-        texel_min + Vec2::Y,
-    ];
+    // In the texel's own frame: the shoelace sums cross products of
+    // corners, which at atlas coordinates in the thousands are 1e7 in f32
+    // and cancel to a texel's area of about 1, leaving rounding noise
+    // (measured: a centroid 5 texels outside the texel on a 512-texel atlas).
+    let uvs = uvs.map(|uv| uv - texel_min);
+    let mut polygon = vec![Vec2::ZERO, Vec2::X, Vec2::ONE, Vec2::Y];
     let orientation = (uvs[1] - uvs[0]).perp_dot(uvs[2] - uvs[0]).signum();
     if orientation == 0.0 {
         return None;
@@ -962,7 +962,7 @@ fn covered_centroid(uvs: &[Vec2; 3], texel_min: Vec2) -> Option<Vec2> {
         area += cross;
         centroid += (p + q) * cross;
     }
-    (area.abs() > 1e-12).then(|| centroid / (3.0 * area))
+    (area.abs() > 1e-12).then(|| texel_min + centroid / (3.0 * area))
 }
 
 /// Separating-axis test of a 2D triangle against an axis-aligned box.
@@ -1039,6 +1039,28 @@ mod tests {
                 < 1e-5
         );
         assert!(covered_centroid(&uvs, Vec2::new(3.0, 3.0)).is_none());
+        // The same cut far into a large atlas: the answer moves with the
+        // texel, whatever the coordinates' magnitude.
+        let offset = Vec2::new(12_000.0, 9_000.0);
+        let far = uvs.map(|uv| uv + offset);
+        let far_centroid = covered_centroid(&far, offset).unwrap();
+        assert!(
+            far_centroid.distance(centroid + offset) < 1e-3,
+            "{far_centroid}"
+        );
+        // A sliver of a generated atrium's chart on a 512-texel atlas,
+        // covering 0.15 of its texel: the middle of the covered part, not a
+        // point 5 texels away.
+        let sliver = [
+            Vec2::new(443.5, 366.5),
+            Vec2::new(447.1487, 366.5),
+            Vec2::new(447.1487, 370.1487),
+        ];
+        let middle = covered_centroid(&sliver, Vec2::new(447.0, 369.0)).unwrap();
+        assert!(
+            middle.distance(Vec2::new(447.0744, 369.5)) < 0.01,
+            "{middle}"
+        );
     }
 
     fn quad_scene(size: f32) -> Scene {
