@@ -54,7 +54,8 @@
 //! | `space_rays` | 64 | gather rays per point in space |
 //! | `cache_visibility` | true | receivers and surfels drop the bilinear lightmap caches they cannot see (one ray each at load; see the limits below); false: the paper's plain bilinear lookup (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the lightmap caches over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
-//! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
+//! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
+//! | `final_gather_min_rays` | 64 (`high`: 256) | the automatic ray count's floor, which large scenes get: Sponza's 180k gathering receivers get it (see below) (run time) |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -111,6 +112,13 @@
 //!   0.848 / 0.863 / 0.873x and its tiles 17.4 / 15.4 / 14.1 % at
 //!   `node_samples` 16 / 64 / 256 (bake 47 / 93 / 196 s). Keeping unseen
 //!   children as links instead leaks on Sponza (tiles 14.8 -> 18.1 %).
+//! - The final gather's own noise: large scenes get the automatic count's
+//!   floor, 64 rays a receiver, and the camera-visible lightmap of
+//!   Sponza (sun, PIC high, 1024-path reference) measured 18.5 / 15.1 %
+//!   at 64 / 256 rays, tiles 14.6 / 14.2 %. The `high`
+//!   preset raises the floor to 256 (`final_gather_min_rays`), which
+//!   costs Sponza about 60 ms a frame more on two cores (gather 57-87 ->
+//!   117-119 ms) and 148 MB; small scenes already get up to 1024.
 
 // SH loops index several per-band arrays by band number on purpose.
 #![allow(clippy::needless_range_loop)]
@@ -183,6 +191,7 @@ pub struct PicParams {
     pub cache_visibility: bool,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
+    pub final_gather_min_rays: u32,
     pub seed: u64,
 }
 
@@ -214,6 +223,7 @@ impl Default for PicParams {
             cache_visibility: true,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
+            final_gather_min_rays: 64,
             seed: 1,
         }
     }
@@ -237,6 +247,7 @@ impl PicParams {
                 params.links = 254;
                 params.bands = 4;
                 params.projected = true;
+                params.final_gather_min_rays = 256;
             }
             other => {
                 return Err(relight_technique::ParamError {
@@ -334,7 +345,8 @@ impl PicParams {
     }
 
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
-        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)
+        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
+            .with_least_rays(self.final_gather_min_rays)
     }
 
     pub fn runtime(&self) -> RuntimeSettings {

@@ -167,9 +167,12 @@ pub struct FinalGatherSettings {
     /// technique's own sample spacing (see [`FinalGather::build`]).
     pub reach_texels: Option<f32>,
     /// Cosine-distributed rays per gathering receiver; 0: automatic
-    /// (2^23 rays shared by the gathering receivers, 64 to
+    /// (2^23 rays shared by the gathering receivers, `least_rays` to
     /// 1024 each).
     pub rays: u32,
+    /// The automatic count's floor: 64, or more where a quality preset
+    /// pays for less gather noise on large scenes.
+    pub least_rays: u32,
 }
 
 fn reach_problem(given: &str) -> String {
@@ -195,6 +198,7 @@ impl FinalGatherSettings {
     pub const OFF: Self = Self {
         reach_texels: Some(0.0),
         rays: 1,
+        least_rays: LEAST_RAYS,
     };
 
     /// The settings from the parameters `final_gather` and
@@ -212,7 +216,22 @@ impl FinalGatherSettings {
                 "final_gather_rays must be 0 (automatic) to 4096, got {rays}"
             ));
         }
-        Ok(Self { reach_texels, rays })
+        Ok(Self {
+            reach_texels,
+            rays,
+            least_rays: LEAST_RAYS,
+        })
+    }
+
+    /// The same with the automatic count's floor at `least_rays`
+    /// (parameter `final_gather_min_rays`), or what is wrong with it.
+    pub fn with_least_rays(self, least_rays: u32) -> Result<Self, String> {
+        if !(1..=1024).contains(&least_rays) {
+            return Err(format!(
+                "final_gather_min_rays must be 1 to 1024, got {least_rays}"
+            ));
+        }
+        Ok(Self { least_rays, ..self })
     }
 
     pub fn is_off(&self) -> bool {
@@ -298,8 +317,8 @@ impl FinalGather {
             .filter(|&index| near[index as usize])
             .collect();
         let rays = match settings.rays {
-            0 => (AUTOMATIC_RAY_BUDGET / gathering.len().max(1)).clamp(LEAST_RAYS as usize, 1024)
-                as u32,
+            0 => (AUTOMATIC_RAY_BUDGET / gathering.len().max(1))
+                .clamp(settings.least_rays as usize, 1024) as u32,
             rays => rays,
         };
         let samples = if rays == selection.len() as u32 {
@@ -642,6 +661,7 @@ mod tests {
         let settings = FinalGatherSettings {
             reach_texels: Some(f32::INFINITY),
             rays: 32,
+            least_rays: LEAST_RAYS,
         };
         let mut gather = FinalGather::build(&context, settings, 1, false);
         gather.update(&context, &[], |_| indirect, true);
@@ -691,6 +711,7 @@ mod tests {
         let settings = FinalGatherSettings {
             reach_texels: Some(4.0),
             rays: 16,
+            least_rays: LEAST_RAYS,
         };
         let gather = FinalGather::build(&context, settings, 1, false);
         assert!(!gather.is_empty());
@@ -739,6 +760,7 @@ mod tests {
                 FinalGatherSettings {
                     reach_texels,
                     rays: 16,
+                    least_rays: LEAST_RAYS,
                 },
                 1,
                 false,
@@ -759,6 +781,7 @@ mod tests {
             FinalGatherSettings {
                 reach_texels: None,
                 rays: 16,
+                least_rays: LEAST_RAYS,
             },
             receivers / 4,
             false,
@@ -774,6 +797,7 @@ mod tests {
             FinalGatherSettings {
                 reach_texels: Some(2.0),
                 rays: 16,
+                least_rays: LEAST_RAYS,
             },
             1,
             true,
@@ -811,6 +835,12 @@ mod tests {
         for (reach, rays) in [("\"fast\"", 64), ("-1", 64), ("8", 5000)] {
             let message = settings(reach, rays).unwrap_err();
             assert!(message.starts_with("final_gather"), "{message}");
+        }
+        let auto = settings("\"auto\"", 0).unwrap();
+        assert_eq!(auto.with_least_rays(256).unwrap().least_rays, 256);
+        for least in [0, 2000] {
+            let message = auto.with_least_rays(least).unwrap_err();
+            assert!(message.starts_with("final_gather_min_rays"), "{message}");
         }
     }
 }
