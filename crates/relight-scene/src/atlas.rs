@@ -119,7 +119,8 @@ pub struct Atlas {
     /// True when the mesh's own second UV set was used.
     pub from_mesh_uvs: bool,
     pub chart_count: usize,
-    /// Metres per texel edge actually used (for generated atlases).
+    /// Metres per texel edge: as generated, or for the mesh's own UVs the
+    /// mean over the surface (0 only for a mesh without area).
     pub metres_per_texel: f32,
 }
 
@@ -211,8 +212,18 @@ impl Atlas {
                 return None;
             }
         }
+        // The texel size everything downstream scales by (receiver
+        // relocation, the final gather's reach, PIC's cache spacing): the
+        // mean over the surface, as the mesh's own UVs need not be uniform.
+        let texel_area: f64 = triangle_uvs
+            .iter()
+            .map(|[a, b, c]| 0.5 * (*b - *a).perp_dot(*c - *a).abs() as f64)
+            .sum();
         let mut atlas = Self::rasterise(scene, resolution, resolution, triangle_uvs);
         atlas.from_mesh_uvs = true;
+        if texel_area > 0.0 {
+            atlas.metres_per_texel = (mesh.total_area() / texel_area).sqrt() as f32;
+        }
         Some(atlas)
     }
 
@@ -1130,6 +1141,32 @@ mod tests {
         ];
         let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(32)).unwrap();
         assert!(!atlas.from_mesh_uvs);
+    }
+
+    /// The mesh's own UVs keep a texel size: relocation, the final
+    /// gather's reach and PIC's cache spacing all scale by it, and at 0
+    /// the gather found no receiver near anything. Two 2 m quads each take
+    /// 32 x 16 texels of a 64-texel atlas (a stretch the mean absorbs;
+    /// diagonals that miss the texel centres, which the overlap check
+    /// would count twice): 4 m^2 over 512 texels.
+    #[test]
+    fn mesh_uvs_give_their_texel_size() {
+        let mut scene = quad_scene(2.0);
+        scene.mesh.lightmap_uvs = vec![
+            Vec2::new(0.0, 0.25),
+            Vec2::new(0.5, 0.25),
+            Vec2::new(0.5, 0.0),
+            Vec2::new(0.0, 0.0),
+            Vec2::new(0.0, 0.5),
+            Vec2::new(0.5, 0.5),
+        ];
+        let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(64)).unwrap();
+        assert!(atlas.from_mesh_uvs);
+        assert!(
+            (atlas.metres_per_texel - (4.0f32 / 512.0).sqrt()).abs() < 1e-5,
+            "{}",
+            atlas.metres_per_texel
+        );
     }
 
     #[test]
