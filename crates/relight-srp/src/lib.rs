@@ -136,7 +136,11 @@
 //!   0.930x (`relight converge SCENE -t srp --sweep final_gather=0,auto`);
 //!   at order 7 the corridor 6.0 -> 2.5 % and the point-lit box 5.9 ->
 //!   2.3 % over tiles. The multi-bounce feedback reads the
-//!   reconstruction, not the gather.
+//!   reconstruction, not the gather; but a gather hit on a texel that
+//!   gathers too reflects what that texel gathered, so light passed from
+//!   corner to corner keeps its near field (the first frame gathers four
+//!   times): living room tiles 9.6 -> 6.8 %, camera-visible lightmap
+//!   16.3 -> 14.3 %, light 0.932 -> 0.971x.
 
 mod bake;
 mod kernels;
