@@ -723,6 +723,24 @@ mod tests {
         SceneContext::new(scene, ContextSettings::default()).expect("context")
     }
 
+    /// Every receiver of `context` that sees geometry gathering 32 rays,
+    /// after one gather with no light and the same technique value (the
+    /// returned colour) everywhere: later gathers reflect gathered light.
+    fn gathered_once_in_the_dark(
+        context: &SceneContext,
+    ) -> (FinalGather, Rgb, FinalGatherSettings) {
+        let indirect = Rgb::new(0.3, 0.2, 0.1);
+        let settings = FinalGatherSettings {
+            reach_texels: Some(f32::INFINITY),
+            rays: 32,
+            least_rays: LEAST_RAYS,
+        };
+        let mut gather = FinalGather::build(context, settings, 1, false);
+        gather.light_hits(context, &[]);
+        gather.gather(context, |_| indirect, true);
+        (gather, indirect, settings)
+    }
+
     /// With no light and the same indirect light everywhere, each gathering
     /// receiver's value is the mean over its rays of the hit's albedo times
     /// that light (front faces; back faces reflect direct light alone,
@@ -734,16 +752,7 @@ mod tests {
     #[test]
     fn gathers_the_light_its_rays_hit() {
         let context = point_lit_box();
-        let indirect = Rgb::new(0.3, 0.2, 0.1);
-        let settings = FinalGatherSettings {
-            reach_texels: Some(f32::INFINITY),
-            rays: 32,
-            least_rays: LEAST_RAYS,
-        };
-        let mut gather = FinalGather::build(&context, settings, 1, false);
-        // One gather: later ones reflect the gathered light at the hits.
-        gather.light_hits(&context, &[]);
-        gather.gather(&context, |_| indirect, true);
+        let (gather, indirect, settings) = gathered_once_in_the_dark(&context);
         let receivers = &context.atlas.receivers;
         assert!(gather.receivers().len() * 10 > receivers.len() * 9);
         let samples = gather_samples(settings.rays);
@@ -780,15 +789,7 @@ mod tests {
     #[test]
     fn hits_reflect_the_light_their_receivers_gathered() {
         let context = point_lit_box();
-        let indirect = Rgb::new(0.3, 0.2, 0.1);
-        let settings = FinalGatherSettings {
-            reach_texels: Some(f32::INFINITY),
-            rays: 32,
-            least_rays: LEAST_RAYS,
-        };
-        let mut gather = FinalGather::build(&context, settings, 1, false);
-        gather.light_hits(&context, &[]);
-        gather.gather(&context, |_| indirect, true);
+        let (mut gather, indirect, settings) = gathered_once_in_the_dark(&context);
         let first: Vec<Rgb> = gather.values().to_vec();
         gather.gather(&context, |_| indirect, true);
         let receivers = &context.atlas.receivers;
