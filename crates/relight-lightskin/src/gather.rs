@@ -21,8 +21,14 @@
 //! receiver of the group uses it. The inner loop runs eight VALs per step
 //! in AVX2/FMA when the CPU has them (detected at run time), otherwise in
 //! portable code; both give the same sums up to rounding (tested).
+//!
+//! Visibility: given the receiver's row of [`crate::visibility`], a VAL
+//! counts only where the receiver sees the VAL's anchor (the AVX2 kernel
+//! gathers the eight anchors' bits from the row and masks the geometry
+//! term).
 
 use crate::vals::{Vals, LANES};
+use crate::visibility::{row_sees, MIXED_WORDS};
 use glam::Vec3;
 use relight_core::Rgb;
 
@@ -50,12 +56,15 @@ const MIN_DISTANCE_SQ: f32 = 1e-12;
 
 /// Adds VALs `start..end` (multiples of [`LANES`]) to `sums` for the
 /// receiver at `position` with `normal`; `SPREAD` also sums the squares.
+/// With `visible`, the receiver's visibility row, only the VALs whose
+/// anchor it sees count (`vals.anchor` must then be filled).
 pub fn accumulate<const SPREAD: bool>(
     vals: &Vals,
     start: usize,
     end: usize,
     position: Vec3,
     normal: Vec3,
+    visible: Option<&[u32]>,
     sums: &mut Sums,
 ) {
     accumulate_many::<SPREAD>(
@@ -64,6 +73,7 @@ pub fn accumulate<const SPREAD: bool>(
         end,
         &[position],
         &[normal],
+        visible.as_ref().map(std::slice::from_ref),
         std::slice::from_mut(sums),
     );
 }
@@ -75,9 +85,13 @@ pub fn accumulate_portable<const SPREAD: bool>(
     end: usize,
     position: Vec3,
     normal: Vec3,
+    visible: Option<&[u32]>,
     sums: &mut Sums,
 ) {
     for j in start..end {
+        if visible.is_some_and(|row| !row_sees(row, vals.anchor[j])) {
+            continue;
+        }
         let vx = position.x - vals.px[j];
         let vy = position.y - vals.py[j];
         let vz = position.z - vals.pz[j];
@@ -109,21 +123,27 @@ pub const RECEIVERS_PER_PASS: usize = 4;
 
 /// [`accumulate`] for several receivers: the AVX2 kernel takes them
 /// [`RECEIVERS_PER_PASS`] at a time, the rest one by one.
+/// `visible`: each receiver's visibility row, as in [`accumulate`].
 pub fn accumulate_many<const SPREAD: bool>(
     vals: &Vals,
     start: usize,
     end: usize,
     positions: &[Vec3],
     normals: &[Vec3],
+    visible: Option<&[&[u32]]>,
     sums: &mut [Sums],
 ) {
     debug_assert!(
         start.is_multiple_of(LANES) && end.is_multiple_of(LANES) && end <= vals.padded_len()
     );
+    debug_assert!(visible.is_none_or(|rows| rows.len() == sums.len() && vals.anchor.len() >= end));
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
+            // A row nobody reads stands in when there is no visibility.
+            let everything = [u32::MAX];
+            let row = |index: usize| visible.map_or(&everything[..], |rows| rows[index]);
             let mut index = 0;
             while index + RECEIVERS_PER_PASS <= sums.len() {
                 let mut group: [Sums; RECEIVERS_PER_PASS] =
@@ -131,14 +151,18 @@ pub fn accumulate_many<const SPREAD: bool>(
                 // SAFETY: AVX2 and FMA are present (checked above); the
                 // range lies inside every column (padding to LANES).
                 unsafe {
-                    accumulate_avx2_group::<SPREAD, RECEIVERS_PER_PASS>(
-                        vals,
-                        start,
-                        end,
-                        std::array::from_fn(|offset| positions[index + offset]),
-                        std::array::from_fn(|offset| normals[index + offset]),
-                        &mut group,
-                    )
+                    let positions = std::array::from_fn(|offset| positions[index + offset]);
+                    let normals = std::array::from_fn(|offset| normals[index + offset]);
+                    let rows = std::array::from_fn(|offset| row(index + offset));
+                    if visible.is_some() {
+                        accumulate_avx2_group::<SPREAD, true, RECEIVERS_PER_PASS>(
+                            vals, start, end, positions, normals, rows, &mut group,
+                        )
+                    } else {
+                        accumulate_avx2_group::<SPREAD, false, RECEIVERS_PER_PASS>(
+                            vals, start, end, positions, normals, rows, &mut group,
+                        )
+                    }
                 };
                 sums[index..index + RECEIVERS_PER_PASS].copy_from_slice(&group);
                 index += RECEIVERS_PER_PASS;
@@ -147,14 +171,27 @@ pub fn accumulate_many<const SPREAD: bool>(
                 let mut group = [sums[rest]];
                 // SAFETY: as above.
                 unsafe {
-                    accumulate_avx2_group::<SPREAD, 1>(
-                        vals,
-                        start,
-                        end,
-                        [positions[rest]],
-                        [normals[rest]],
-                        &mut group,
-                    )
+                    if visible.is_some() {
+                        accumulate_avx2_group::<SPREAD, true, 1>(
+                            vals,
+                            start,
+                            end,
+                            [positions[rest]],
+                            [normals[rest]],
+                            [row(rest)],
+                            &mut group,
+                        )
+                    } else {
+                        accumulate_avx2_group::<SPREAD, false, 1>(
+                            vals,
+                            start,
+                            end,
+                            [positions[rest]],
+                            [normals[rest]],
+                            [row(rest)],
+                            &mut group,
+                        )
+                    }
                 };
                 sums[rest] = group[0];
             }
@@ -168,6 +205,7 @@ pub fn accumulate_many<const SPREAD: bool>(
             end,
             positions[index],
             normals[index],
+            visible.map(|rows| rows[index]),
             &mut sums[index],
         );
     }
@@ -176,12 +214,15 @@ pub fn accumulate_many<const SPREAD: bool>(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-unsafe fn accumulate_avx2_group<const SPREAD: bool, const R: usize>(
+/// `VISIBLE`: mask each VAL by its anchor's bit in the receiver's `rows`
+/// (which must then hold every anchor's word).
+unsafe fn accumulate_avx2_group<const SPREAD: bool, const VISIBLE: bool, const R: usize>(
     vals: &Vals,
     start: usize,
     end: usize,
     positions: [Vec3; R],
     normals: [Vec3; R],
+    rows: [&[u32]; R],
     sums: &mut [Sums; R],
 ) {
     use std::arch::x86_64::*;
@@ -205,8 +246,45 @@ unsafe fn accumulate_avx2_group<const SPREAD: bool, const R: usize>(
     let mut square_y = [zero; R];
     let mut square_z = [zero; R];
     let column = |values: &Vec<f32>, j: usize| _mm256_loadu_ps(values.as_ptr().add(j));
+    let one = _mm256_set1_epi32(1);
+    let low_bits = _mm256_set1_epi32(31);
+    let all_lanes = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
     let mut j = start;
     while j < end {
+        let mut masks = [all_lanes; R];
+        if VISIBLE {
+            let anchors = _mm256_loadu_si256(vals.anchor.as_ptr().add(j) as *const __m256i);
+            let anchor_bit = _mm256_and_si256(anchors, low_bits);
+            let block = j / LANES;
+            let word = *vals.block_word.get_unchecked(block);
+            if word != MIXED_WORDS {
+                // Sorted by anchor, most blocks' anchors share one word of
+                // each row: one load per receiver, and no work at all for
+                // a block that none of the receivers sees.
+                let words: [u32; R] =
+                    std::array::from_fn(|r| *rows[r].get_unchecked(word as usize));
+                let bits = *vals.block_bits.get_unchecked(block);
+                if words.iter().all(|&word| word & bits == 0) {
+                    j += LANES;
+                    continue;
+                }
+                for r in 0..R {
+                    let seen = _mm256_and_si256(
+                        _mm256_srlv_epi32(_mm256_set1_epi32(words[r] as i32), anchor_bit),
+                        one,
+                    );
+                    masks[r] = _mm256_castsi256_ps(_mm256_cmpeq_epi32(seen, one));
+                }
+            } else {
+                let anchor_word = _mm256_srli_epi32::<5>(anchors);
+                for r in 0..R {
+                    let words =
+                        _mm256_i32gather_epi32::<4>(rows[r].as_ptr() as *const i32, anchor_word);
+                    let seen = _mm256_and_si256(_mm256_srlv_epi32(words, anchor_bit), one);
+                    masks[r] = _mm256_castsi256_ps(_mm256_cmpeq_epi32(seen, one));
+                }
+            }
+        }
         let px = column(&vals.px, j);
         let py = column(&vals.py, j);
         let pz = column(&vals.pz, j);
@@ -241,7 +319,10 @@ unsafe fn accumulate_avx2_group<const SPREAD: bool, const R: usize>(
             // 2^-12, 0.04 %, far under the method's own error): a Newton
             // step or a division would lengthen the dependency chain that
             // limits this loop.
-            let geometry = _mm256_mul_ps(numerator, _mm256_rcp_ps(denominator));
+            let mut geometry = _mm256_mul_ps(numerator, _mm256_rcp_ps(denominator));
+            if VISIBLE {
+                geometry = _mm256_and_ps(geometry, masks[r]);
+            }
             irradiance_r[r] = _mm256_fmadd_ps(power_r, geometry, irradiance_r[r]);
             irradiance_g[r] = _mm256_fmadd_ps(power_g, geometry, irradiance_g[r]);
             irradiance_b[r] = _mm256_fmadd_ps(power_b, geometry, irradiance_b[r]);
@@ -291,9 +372,13 @@ pub fn accumulate_glossy(
     normal: Vec3,
     reflected: Vec3,
     exponent: f32,
+    visible: Option<&[u32]>,
     sums: &mut Sums,
 ) {
     for j in 0..vals.count {
+        if visible.is_some_and(|row| !row_sees(row, vals.anchor[j])) {
+            continue;
+        }
         let to_val = Vec3::new(vals.px[j], vals.py[j], vals.pz[j]) - position;
         let distance_sq = to_val.length_squared().max(MIN_DISTANCE_SQ);
         let distance = distance_sq.sqrt();

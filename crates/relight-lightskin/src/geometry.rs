@@ -16,6 +16,9 @@ pub struct SurfaceHit {
     pub normal: Vec3,
     pub albedo: Rgb,
     pub distance: f32,
+    /// Triangle and barycentric coordinates of a hit on the static mesh
+    /// (`None` on a moving mesh).
+    pub site: Option<(u32, glam::Vec2)>,
 }
 
 pub struct Geometry<'a> {
@@ -42,6 +45,7 @@ impl Geometry<'_> {
                 normal: self.scene.mesh.geometric_normal(triangle),
                 albedo: self.scene.albedo_at(triangle, hit.barycentric),
                 distance: hit.t,
+                site: Some((hit.triangle, hit.barycentric)),
             }
         });
         if let Some(world) = self.dynamic {
@@ -55,6 +59,7 @@ impl Geometry<'_> {
                     albedo: world.materials[world.material_ids[hit.triangle as usize] as usize]
                         .albedo,
                     distance: hit.t,
+                    site: None,
                 });
             }
         }

@@ -11,16 +11,23 @@
 //! 2. Gathering (equations 3 to 7) at the sparse points, which are spread
 //!    over every mesh when it is loaded and fixed to it: irradiance and the
 //!    averaged light position, diffuse and (for glossy materials) glossy.
-//! 3. Occlusion (section 3.3, optional): the other sparse points as discs
-//!    dim each point's light.
+//!    With `visibility` (the default), a point gathers a VAL only if it
+//!    sees the VAL's anchor, the static point nearest the VAL on its side
+//!    of the surface; which static points see each other is traced once,
+//!    when the scene is loaded (see [`visibility`]).
+//! 3. Occlusion (section 3.3, off by default): the other sparse points as
+//!    discs dim each point's light.
 //! 4. Renormalisation (equations 8 to 11): each point's averaged virtual
 //!    point light gets the power that reproduces its gathered irradiance.
 //! 5. Interpolation (equations 12 and 13) to the lightmap texels of the
 //!    static scene and the vertices of moving meshes, from the eight
-//!    nearest sparse points fixed when the mesh was loaded.
-//! 6. Shading (equation 10): each pixel evaluates the interpolated light
-//!    at its own position and normal (lightmap texels bilinearly, moving
-//!    meshes barycentrically), diffuse and glossy.
+//!    nearest sparse points fixed when the mesh was loaded; each texel's
+//!    light evaluated at its receiver (equation 10), the final gather's
+//!    near field over it, is the irradiance lightmap.
+//! 6. Shading: static surfaces sample the irradiance lightmap bilinearly;
+//!    moving meshes evaluate their vertices' interpolated lights at each
+//!    pixel (equation 10), and glossy light is evaluated per pixel from
+//!    the texels' or vertices' interpolated glossy lights.
 //!
 //! Moving meshes come from the scene file's `[[dynamic]]` tables (see
 //! [`dynamic`]); they block and reflect light in the maps and receive
@@ -33,7 +40,8 @@
 //! | `emissive_resolution` | 64 | texels per side shared by all emissive triangles' maps |
 //! | `points` | 4096 | sparse points on the static scene |
 //! | `dynamic_points` | 256 | sparse points on each moving mesh (the paper's Figure 5) |
-//! | `occlusion` | true | section 3.3's disc occlusion |
+//! | `visibility` | true | a sparse point gathers only the VALs whose anchor it sees, traced between every pair of static points at load (at most 16384 points) |
+//! | `occlusion` | false | section 3.3's disc occlusion (the paper's method: `visibility=false occlusion=true`) |
 //! | `interpolation` | true | false: every VAL applied to every receiver and pixel (the paper's brute-force comparison) |
 //! | `epsilon` | 1e-3 | equation 7's epsilon, relative to an average VAL seen across the scene's diagonal |
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent above 1 (0: diffuse only) |
@@ -82,11 +90,40 @@
 //!   Sponza 8x8-tile relRMSE against one bounce 51.3 -> 17.2 %,
 //!   camera-visible lightmap 63.0 -> 24.0 %; the living room 54.7 ->
 //!   22.1 % and 74.1 -> 31.9 %, its light 1.32 -> 1.10x (`relight
-//!   converge SCENE -t lightskin --sweep final_gather=0,auto`). With
-//!   `final_gather=inf` every texel that sees geometry is traced and
-//!   LightSkin's own interpolation serves only moving meshes and glossy
-//!   light. What the gather leaves on the living room is light through
-//!   walls: texels far from geometry keep the disc occlusion's leaks.
+//!   converge SCENE -t lightskin --sweep final_gather=0,auto`, measured
+//!   with the disc occlusion). With `final_gather=inf` every texel that
+//!   sees geometry is traced and LightSkin's own interpolation serves only
+//!   moving meshes and glossy light.
+//! - Visibility between sparse points: the disc occlusion dims light
+//!   through a wall only as far as the wall's few points cover the light,
+//!   so sunlit outer walls lit the rooms behind them (living room, against
+//!   one bounce: thin geometry 1.12x, camera-visible lightmap 31.0 %).
+//!   Static points and walls stay put, so each pair of static points is
+//!   traced once at load (n^2 / 2 shadow rays: 8.4M for 4096 points;
+//!   loading took 1.6 s longer on the living room and 2.8 s on Sponza on
+//!   two cores; n^2 bits, 2 MiB), and a VAL counts at a
+//!   point that sees its anchor. A VAL stands for the area around its
+//!   anchor, so light that a point sees only part of counts whole or not
+//!   at all. Measured by `relight converge SCENE -t lightskin --sweep
+//!   visibility=false,true --sweep occlusion=true,false` (camera-visible
+//!   lightmap / 8x8 image tiles against one bounce, the paper's method ->
+//!   the defaults): living room 31.0 / 21.9 % -> 23.9 / 18.4 % (light
+//!   1.10 -> 0.98x), Sponza (sun) 21.9 / 10.9 % -> 21.3 / 10.6 %, Sponza
+//!   (point) 15.9 / 13.7 % -> 13.1 / 11.7 %, the atrium 44.6 / 17.1 % ->
+//!   23.5 / 14.6 %, the point-lit Cornell box 19.7 / 14.1 % -> 14.6 /
+//!   2.5 %. With visibility the disc occlusion only darkens further
+//!   (living room 0.960x against 0.983x of the light, atrium 0.88x
+//!   against 0.94x) and costs a stage, so it is off. The gather masks
+//!   VALs by their anchors' bits; VALs are sorted by anchor and points
+//!   stored in Morton order, so most blocks of eight VALs read one word
+//!   of a row and blocks no receiver of a group sees are skipped.
+//! - Static surfaces shade from the irradiance lightmap: evaluating the
+//!   bilinear blend of neighbouring texels' averaged lights per pixel
+//!   (the paper's equation 10) gave blotches where those lights sit near
+//!   the surface (atrium, visibility on: image 77 % per pixel, 22.4 % over
+//!   tiles; from the lightmap 23.5 % and 14.6 %; Sponza 32.9 / 12.2 %
+//!   against 24.7 / 10.6 %), and it lost to the lightmap on every scene
+//!   measured. The lightmap is also what an engine uploads.
 //! - Glossy reflection is evaluated for the scene camera's eye, which relight
 //!   keeps fixed; the glossy lobe uses c = specular / (2 pi), so c_k =
 //!   specular (k + 1) / (2 pi) is the normalised Phong lobe.
@@ -98,6 +135,7 @@ pub mod occlusion;
 pub mod ply;
 pub mod points;
 pub mod vals;
+pub mod visibility;
 
 use dynamic::{DynamicMesh, DynamicWorld};
 use gather::Sums;
@@ -117,6 +155,7 @@ use std::f32::consts::PI;
 use std::path::PathBuf;
 use std::sync::Arc;
 use vals::{RsmSettings, Val, Vals};
+use visibility::PointVisibility;
 
 /// What can go wrong setting LightSkin up, each saying where and what to do.
 #[derive(Debug, thiserror::Error)]
@@ -142,6 +181,7 @@ pub struct LightSkinParams {
     pub points: u32,
     pub dynamic_points: u32,
     pub occlusion: bool,
+    pub visibility: bool,
     pub interpolation: bool,
     pub epsilon: f32,
     pub specular: f32,
@@ -162,7 +202,8 @@ impl Default for LightSkinParams {
             emissive_resolution: 64,
             points: 4096,
             dynamic_points: 256,
-            occlusion: true,
+            occlusion: false,
+            visibility: true,
             interpolation: true,
             epsilon: 1e-3,
             specular: 0.0,
@@ -204,6 +245,13 @@ impl LightSkinParams {
         if !(1..=1_000_000).contains(&self.points) {
             return fail(format!(
                 "points must be between 1 and 1000000, got {}",
+                self.points
+            ));
+        }
+        if self.visibility && self.points > MAX_VISIBILITY_POINTS {
+            return fail(format!(
+                "visibility traces a shadow ray between every pair of sparse points, so it allows \
+                 at most {MAX_VISIBILITY_POINTS} points (got {}): lower points or set visibility=false",
                 self.points
             ));
         }
@@ -399,7 +447,25 @@ impl SparsePoints {
         }
         (anchors, area_per_point)
     }
+
+    /// Puts the points in Morton order. Points next to each other then
+    /// see much the same VALs: the gather's groups of receivers share
+    /// visibility words and skip the same blocks of VALs.
+    fn sort_spatially(&mut self) {
+        let order = relight_trace::direct::morton_order(&self.positions);
+        fn apply<T: Copy>(values: &mut Vec<T>, order: &[u32]) {
+            *values = order.iter().map(|&index| values[index as usize]).collect();
+        }
+        apply(&mut self.positions, &order);
+        apply(&mut self.normals, &order);
+        apply(&mut self.radius_sq, &order);
+        apply(&mut self.glossy_exponent, &order);
+    }
 }
+
+/// The most static sparse points whose mutual visibility is traced: n^2 / 2
+/// shadow rays at load (134M here) and n^2 bits (32 MiB).
+const MAX_VISIBILITY_POINTS: u32 = 16384;
 
 /// A running LightSkin for one scene.
 pub struct LightSkin {
@@ -418,14 +484,19 @@ pub struct LightSkin {
     light_radius: Vec<f32>,
     occlusion: Vec<f32>,
     occluders: occlusion::Occluders,
+    /// Which static points see each other and the VAL anchors (empty with
+    /// `visibility` off), and how many static points there are.
+    visibility: PointVisibility,
+    static_points: usize,
     point_diffuse: Vpls,
     point_glossy: Vpls,
     texel_interpolation: Interpolation,
     texel_diffuse: Vpls,
     texel_glossy: Vpls,
-    /// Dilated lightmaps of the texels' interpolated lights.
-    diffuse_power_map: Vec<Rgb>,
-    diffuse_position_map: Vec<Rgb>,
+    /// The receivers' irradiance (final gather included) as a dilated
+    /// lightmap, which shading samples; and the texels' interpolated
+    /// glossy lights, which shading evaluates per pixel.
+    irradiance_map: Vec<Rgb>,
     glossy_power_map: Vec<Rgb>,
     glossy_position_map: Vec<Rgb>,
     /// Per moving-mesh vertex (all meshes in order): neighbours among the
@@ -475,6 +546,28 @@ impl LightSkin {
             params.seed,
             glossy_exponent,
         );
+        sparse.sort_spatially();
+        let static_points = sparse.positions.len();
+        let point_spacing = area_per_point.sqrt();
+        let visibility = if params.visibility && params.interpolation {
+            let mut visibility = PointVisibility::trace(
+                &context.bvh,
+                &sparse.positions,
+                &sparse.normals,
+                relight_trace::direct::ray_epsilon_for(&context.bvh),
+            );
+            // Two spacings: where a surface has points at all, the nearest
+            // on a side is within about one.
+            visibility.anchor_receivers(
+                &context.atlas,
+                &sparse.positions,
+                &sparse.normals,
+                2.0 * point_spacing,
+            );
+            visibility
+        } else {
+            PointVisibility::default()
+        };
         let texel_interpolation = Interpolation::build(
             &context.atlas.receivers.positions,
             &context.atlas.receivers.normals,
@@ -517,7 +610,7 @@ impl LightSkin {
         let receiver_count = context.atlas.receivers.len();
         let map_size = (context.atlas.width * context.atlas.height) as usize;
         let final_gather = match params.final_gather_settings() {
-            Ok(settings) => FinalGather::build(&context, settings, params.points as usize, true),
+            Ok(settings) => FinalGather::build(&context, settings, params.points as usize, false),
             Err(message) => {
                 return Err(relight_technique::ParamError {
                     technique: "lightskin",
@@ -543,13 +636,14 @@ impl LightSkin {
             light_radius: vec![0.0; point_count],
             occlusion: vec![0.0; point_count],
             occluders: occlusion::Occluders::default(),
+            visibility,
+            static_points,
             point_diffuse: Vpls::zeroed(point_count),
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,
             texel_diffuse: Vpls::zeroed(receiver_count),
             texel_glossy: Vpls::zeroed(if glossy { receiver_count } else { 0 }),
-            diffuse_power_map: vec![Rgb::ZERO; map_size],
-            diffuse_position_map: vec![Rgb::ZERO; map_size],
+            irradiance_map: vec![Rgb::ZERO; map_size],
             glossy_power_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
             glossy_position_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
             vertex_interpolation,
@@ -644,30 +738,44 @@ impl LightSkin {
         self.params.epsilon as f64 * mean_luminance / diagonal_sq
     }
 
+    /// Anchors this frame's VALs to the static points that stand for them
+    /// in visibility lookups.
+    fn anchor_vals(&mut self) {
+        self.visibility
+            .anchor_vals(&mut self.vals, &self.context.atlas);
+    }
+
     fn gather_points(&mut self) {
         let vals = &self.vals;
         let block = self.params.block as usize;
         let spread = self.params.occlusion;
         let positions = &self.points.positions;
         let normals = &self.points.normals;
+        let visibility = (!self.visibility.is_empty()).then_some(&self.visibility);
         const GROUP: usize = 16;
         self.sums
             .par_chunks_mut(GROUP)
             .enumerate()
             .for_each(|(group, sums)| {
                 let first = group * GROUP;
+                let count = sums.len();
                 sums.fill(Sums::default());
+                let rows: [&[u32]; GROUP] = std::array::from_fn(|offset| {
+                    visibility.map_or(&[][..], |visibility| visibility.row(first + offset))
+                });
+                let rows = visibility.is_some().then_some(&rows[..count]);
                 let mut start = 0;
                 while start < vals.padded_len() {
                     let end = (start + block).min(vals.padded_len());
-                    let count = sums.len();
                     let positions = &positions[first..first + count];
                     let normals = &normals[first..first + count];
                     if spread {
-                        gather::accumulate_many::<true>(vals, start, end, positions, normals, sums);
+                        gather::accumulate_many::<true>(
+                            vals, start, end, positions, normals, rows, sums,
+                        );
                     } else {
                         gather::accumulate_many::<false>(
-                            vals, start, end, positions, normals, sums,
+                            vals, start, end, positions, normals, rows, sums,
                         );
                     }
                     start = end;
@@ -688,6 +796,7 @@ impl LightSkin {
         if !self.glossy_sums.is_empty() {
             let eye = self.eye;
             let exponents = &self.points.glossy_exponent;
+            let visibility = (!self.visibility.is_empty()).then_some(&self.visibility);
             self.glossy_sums
                 .par_iter_mut()
                 .enumerate()
@@ -703,6 +812,7 @@ impl LightSkin {
                             normal,
                             reflected,
                             exponents[index],
+                            visibility.map(|visibility| visibility.row(index)),
                             sums,
                         );
                     }
@@ -823,8 +933,6 @@ impl LightSkin {
         let atlas = &self.context.atlas;
         self.texel_diffuse
             .interpolate_from(&self.point_diffuse, &self.texel_interpolation);
-        atlas.scatter_into(&self.texel_diffuse.power, &mut self.diffuse_power_map);
-        atlas.scatter_into(&self.texel_diffuse.position, &mut self.diffuse_position_map);
         if !self.glossy_sums.is_empty() {
             self.texel_glossy
                 .interpolate_from(&self.point_glossy, &self.texel_interpolation);
@@ -882,6 +990,7 @@ impl LightSkin {
                     vals.padded_len(),
                     receivers.positions[index],
                     receivers.normals[index],
+                    None,
                     &mut sums,
                 );
                 *irradiance = sums.irradiance();
@@ -921,7 +1030,15 @@ impl LightSkin {
 /// occlusion.
 fn irradiance_from_every_val(vals: &Vals, position: Vec3, normal: Vec3) -> Rgb {
     let mut sums = Sums::default();
-    gather::accumulate::<false>(vals, 0, vals.padded_len(), position, normal, &mut sums);
+    gather::accumulate::<false>(
+        vals,
+        0,
+        vals.padded_len(),
+        position,
+        normal,
+        None,
+        &mut sums,
+    );
     sums.irradiance()
 }
 
@@ -982,6 +1099,9 @@ impl Technique for LightSkin {
             vals.pad();
             self.vals = vals;
         });
+        if !self.visibility.is_empty() {
+            timings.time("anchors", || self.anchor_vals());
+        }
         if !self.params.interpolation {
             timings.time("brute force", || self.brute_force_receivers());
             self.timings = timings;
@@ -998,6 +1118,11 @@ impl Technique for LightSkin {
         if !self.final_gather.is_empty() {
             timings.time("final gather", || self.apply_final_gather(frame.lights));
         }
+        timings.time("lightmap", || {
+            self.context
+                .atlas
+                .scatter_into(&self.receiver_irradiance, &mut self.irradiance_map)
+        });
         self.timings = timings;
         Ok(())
     }
@@ -1018,18 +1143,11 @@ impl Technique for LightSkin {
                     self.indirect_irradiance_in_space(point.position, point.normal)
                 });
         }
-        let atlas = &self.context.atlas;
-        let power = atlas.sample(&self.diffuse_power_map, point.triangle, point.barycentric);
-        let light = atlas.sample(
-            &self.diffuse_position_map,
-            point.triangle,
-            point.barycentric,
-        );
-        let interpolated = phong_diffuse(power, light, point.position, point.normal);
-        let correction =
-            self.final_gather
-                .correction(&self.context, point.triangle, point.barycentric);
-        (interpolated + correction).max(Rgb::ZERO)
+        // The lightmap, not equation 10 per pixel (see the crate doc).
+        self.context
+            .atlas
+            .sample(&self.irradiance_map, point.triangle, point.barycentric)
+            .max(Rgb::ZERO)
     }
 
     /// One bounce gathered from the static surfaces around the point over
@@ -1128,14 +1246,23 @@ impl Technique for LightSkin {
             ),
             MemoryEntry::new(
                 "light maps",
-                (self.diffuse_power_map.len()
-                    + self.diffuse_position_map.len()
+                (self.irradiance_map.len()
                     + self.glossy_power_map.len()
                     + self.glossy_position_map.len())
                     * 12,
             ),
             MemoryEntry::new("receiver irradiance", self.receiver_irradiance.len() * 12),
         ];
+        if !self.visibility.is_empty() {
+            entries.push(MemoryEntry::new(
+                format!(
+                    "sparse point visibility ({} points, {:.1} % of pairs see each other)",
+                    self.static_points,
+                    100.0 * self.visibility.visible_fraction()
+                ),
+                self.visibility.memory_bytes(),
+            ));
+        }
         if !self.vertex_normals_local.is_empty() {
             entries.push(MemoryEntry::new(
                 "moving-mesh vertex lights",

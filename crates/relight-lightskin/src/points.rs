@@ -154,12 +154,26 @@ impl<'a> PointGrid<'a> {
         normals: &[Vec3],
         found: &mut Nearest,
     ) {
+        self.nearest_facing_within(position, normal, normals, f32::INFINITY, found);
+    }
+
+    /// [`Self::nearest_facing`], searching only as far as `max_distance`
+    /// (a few cells, so a query with nothing facing it near is cheap).
+    pub fn nearest_facing_within(
+        &self,
+        position: Vec3,
+        normal: Vec3,
+        normals: &[Vec3],
+        max_distance: f32,
+        found: &mut Nearest,
+    ) {
         found.clear();
         if self.positions.is_empty() {
             return;
         }
         let centre = (position / self.cell).floor().as_ivec3();
-        let reach = ((self.high - self.low).max_element() / self.cell).ceil() as i32 + 2;
+        let whole = ((self.high - self.low).max_element() / self.cell).ceil() + 2.0;
+        let reach = whole.min((max_distance / self.cell).ceil() + 1.0) as i32;
         let consider = |index: u32, found: &mut Nearest| {
             if normals[index as usize].dot(normal) > 0.0 {
                 found.offer(index, self.positions[index as usize].distance(position));

@@ -4,7 +4,7 @@
 //! albedo there.
 
 use crate::geometry::Geometry;
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::luminance;
 use relight_core::Rgb;
@@ -19,6 +19,9 @@ pub const LANES: usize = 8;
 /// is capped at this many times the texel's perpendicular footprint so that
 /// one grazing texel does not become a huge soft light.
 const MAX_GRAZING_STRETCH: f32 = 5.0;
+
+/// The site of a VAL that is not on the static mesh.
+pub const NO_SITE: u32 = u32::MAX;
 
 /// Columns of [`Vals`].
 const COLUMNS: usize = 14;
@@ -58,6 +61,19 @@ pub struct Vals {
     pub px_sq: Vec<f32>,
     pub py_sq: Vec<f32>,
     pub pz_sq: Vec<f32>,
+    /// Per VAL: the static sparse point that stands for it in visibility
+    /// lookups (see [`crate::visibility`]); empty when visibility is off.
+    pub anchor: Vec<u32>,
+    /// Per real VAL: the static triangle it lies on ([`NO_SITE`] for
+    /// moving meshes and point clouds) and where on it.
+    pub site_triangle: Vec<u32>,
+    pub site_barycentric: Vec<Vec2>,
+    /// Per block of [`LANES`] VALs, when anchored: the one word of a
+    /// visibility row that holds all their anchors
+    /// ([`crate::visibility::MIXED_WORDS`] where they span several), and
+    /// those anchors' bits in it.
+    pub block_word: Vec<u32>,
+    pub block_bits: Vec<u32>,
     /// VALs that are real (the rest is padding).
     pub count: usize,
     /// Sums over the real VALs of position and position squared, for the
@@ -72,6 +88,11 @@ impl Vals {
         for column in self.columns_mut() {
             column.clear();
         }
+        self.anchor.clear();
+        self.site_triangle.clear();
+        self.site_barycentric.clear();
+        self.block_word.clear();
+        self.block_bits.clear();
         self.count = 0;
         self.position_sum = [0.0; 3];
         self.position_square_sum = [0.0; 3];
@@ -96,8 +117,28 @@ impl Vals {
         ]
     }
 
-    /// Appends real VALs; call [`Vals::pad`] after the last.
+    /// Appends real VALs that lie on no static triangle; call [`Vals::pad`]
+    /// after the last.
     pub fn extend(&mut self, vals: &[Val]) {
+        self.site_triangle
+            .extend(std::iter::repeat_n(NO_SITE, vals.len()));
+        self.site_barycentric
+            .extend(std::iter::repeat_n(Vec2::ZERO, vals.len()));
+        self.extend_columns(vals);
+    }
+
+    /// Appends real VALs with their sites (triangle, barycentric).
+    pub fn extend_sited(&mut self, vals: &[(Val, Option<(u32, Vec2)>)]) {
+        for (_, site) in vals {
+            let (triangle, barycentric) = site.unwrap_or((NO_SITE, Vec2::ZERO));
+            self.site_triangle.push(triangle);
+            self.site_barycentric.push(barycentric);
+        }
+        let plain: Vec<Val> = vals.iter().map(|(val, _)| *val).collect();
+        self.extend_columns(&plain);
+    }
+
+    fn extend_columns(&mut self, vals: &[Val]) {
         for val in vals {
             self.px.push(val.position.x);
             self.py.push(val.position.y);
@@ -166,6 +207,12 @@ impl Vals {
             }
             column.truncate(budget);
         }
+        for index in 0..budget {
+            self.site_triangle[index] = self.site_triangle[index * count / budget];
+            self.site_barycentric[index] = self.site_barycentric[index * count / budget];
+        }
+        self.site_triangle.truncate(budget);
+        self.site_barycentric.truncate(budget);
         self.count = budget;
         for column in [
             &mut self.power_r,
@@ -188,6 +235,52 @@ impl Vals {
         }
     }
 
+    /// Takes `anchors` (one per VAL, padding included) and sorts the real
+    /// VALs by anchor. VALs of one anchor then sit side by side, so most
+    /// blocks of eight read one word of a receiver's visibility row, which
+    /// the kernel loads once instead of gathering eight.
+    pub fn group_by_anchor(&mut self, anchors: Vec<u32>) {
+        use crate::visibility::{MIXED_WORDS, WORD_BITS};
+        assert_eq!(anchors.len(), self.padded_len());
+        self.anchor = anchors;
+        let mut order: Vec<u32> = (0..self.count as u32).collect();
+        order.par_sort_unstable_by_key(|&index| (self.anchor[index as usize], index));
+        self.permute(&order);
+        self.block_word.clear();
+        self.block_bits.clear();
+        for block in self.anchor.chunks_exact(LANES) {
+            let word = block[0] as usize / WORD_BITS;
+            let shared = block
+                .iter()
+                .all(|&anchor| anchor as usize / WORD_BITS == word);
+            self.block_word
+                .push(if shared { word as u32 } else { MIXED_WORDS });
+            self.block_bits.push(
+                block
+                    .iter()
+                    .fold(0, |bits, &anchor| bits | 1 << (anchor as usize % WORD_BITS)),
+            );
+        }
+    }
+
+    /// Reorders the real VALs: the `index`-th becomes `order[index]`'s.
+    fn permute(&mut self, order: &[u32]) {
+        debug_assert_eq!(order.len(), self.count);
+        fn reorder<T: Copy>(column: &mut [T], order: &[u32]) {
+            let moved: Vec<T> = order.iter().map(|&from| column[from as usize]).collect();
+            column[..moved.len()].copy_from_slice(&moved);
+        }
+        for column in self.columns_mut() {
+            reorder(column, order);
+        }
+        for column in [&mut self.anchor, &mut self.site_triangle] {
+            if column.len() >= order.len() {
+                reorder(column, order);
+            }
+        }
+        reorder(&mut self.site_barycentric, order);
+    }
+
     pub fn padded_len(&self) -> usize {
         self.px.len()
     }
@@ -207,6 +300,8 @@ impl Vals {
 
     pub fn memory_bytes(&self) -> usize {
         self.px.capacity() * 4 * COLUMNS
+            + (self.anchor.capacity() + self.site_triangle.capacity()) * 4
+            + self.site_barycentric.capacity() * 8
     }
 
     /// Total re-emitted flux (W), for conservation checks.
@@ -396,10 +491,10 @@ fn map_texels(
     resolution: u32,
     half_extent: f32,
     out: &mut Vals,
-    texel: impl Fn(f32, f32) -> Option<Val> + Sync,
+    texel: impl Fn(f32, f32) -> Option<SitedVal> + Sync,
 ) {
     let side = 2.0 * half_extent / resolution as f32;
-    let rows: Vec<Vec<Val>> = (0..resolution)
+    let rows: Vec<Vec<SitedVal>> = (0..resolution)
         .into_par_iter()
         .map(|row| {
             let v = (row as f32 + 0.5) * side - half_extent;
@@ -409,7 +504,7 @@ fn map_texels(
         })
         .collect();
     for row in rows {
-        out.extend(&row);
+        out.extend_sited(&row);
     }
 }
 
@@ -481,7 +576,7 @@ fn reflect(
     incident_power: Rgb,
     perpendicular_footprint: f32,
     cos_hit: f32,
-) -> Option<Val> {
+) -> Option<SitedVal> {
     let power = incident_power * hit.albedo;
     if power.max_element() <= 0.0 {
         return None;
@@ -492,10 +587,16 @@ fn reflect(
         hit.normal
     };
     let area = perpendicular_footprint / cos_hit.max(1.0 / MAX_GRAZING_STRETCH);
-    Some(Val {
-        position: hit.position,
-        normal,
-        power_over_pi: power * FRAC_1_PI,
-        area,
-    })
+    Some((
+        Val {
+            position: hit.position,
+            normal,
+            power_over_pi: power * FRAC_1_PI,
+            area,
+        },
+        hit.site,
+    ))
 }
+
+/// A VAL and the static triangle and barycentric coordinates it lies at.
+type SitedVal = (Val, Option<(u32, Vec2)>);

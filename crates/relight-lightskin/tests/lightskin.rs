@@ -115,7 +115,15 @@ fn disc_form_factor_is_exact_on_axis_and_close_off_axis() {
     let vals = single_val(centre, disc_normal, power, area);
     let kernel = |receiver: Vec3, normal: Vec3| {
         let mut sums = Sums::default();
-        accumulate_portable::<false>(&vals, 0, vals.padded_len(), receiver, normal, &mut sums);
+        accumulate_portable::<false>(
+            &vals,
+            0,
+            vals.padded_len(),
+            receiver,
+            normal,
+            None,
+            &mut sums,
+        );
         sums.irradiance[0] as f64
     };
     // On the axis, facing the disc: r^2 / (r^2 + d^2) is the exact form
@@ -192,8 +200,24 @@ fn simd_gathering_matches_portable_gathering() {
         let normal = relight_core::sampling::uniform_sphere(rng.next_vec2());
         let mut fast = Sums::default();
         let mut portable = Sums::default();
-        accumulate::<true>(&vals, 0, vals.padded_len(), position, normal, &mut fast);
-        accumulate_portable::<true>(&vals, 0, vals.padded_len(), position, normal, &mut portable);
+        accumulate::<true>(
+            &vals,
+            0,
+            vals.padded_len(),
+            position,
+            normal,
+            None,
+            &mut fast,
+        );
+        accumulate_portable::<true>(
+            &vals,
+            0,
+            vals.padded_len(),
+            position,
+            normal,
+            None,
+            &mut portable,
+        );
         // The SIMD kernel uses the hardware reciprocal estimate (relative
         // error below 1.5 * 2^-12 = 3.7e-4 per term) and sums in another
         // order; 1e-3 of the total bounds both.
@@ -220,6 +244,48 @@ fn simd_gathering_matches_portable_gathering() {
             ));
         }
         assert!(close(fast.weight, portable.weight, portable.weight));
+    }
+}
+
+#[test]
+fn simd_gathering_with_visibility_matches_portable_gathering() {
+    // Random anchors over 200 points (seven words of a row), grouped as
+    // each frame groups them: blocks whose anchors share a word take the
+    // kernel's one-load path, the others its gather; a random row hides
+    // about half of them. Same tolerance as above.
+    let mut vals = random_vals(1003);
+    let mut rng = relight_core::sampling::Pcg32::new(11, 3);
+    let anchors: Vec<u32> = (0..vals.padded_len())
+        .map(|_| (rng.next_f32() * 200.0) as u32)
+        .collect();
+    vals.group_by_anchor(anchors);
+    assert!(vals
+        .block_word
+        .contains(&relight_lightskin::visibility::MIXED_WORDS));
+    assert!(vals
+        .block_word
+        .iter()
+        .any(|&word| word != relight_lightskin::visibility::MIXED_WORDS));
+    for _ in 0..50 {
+        let row: Vec<u32> = (0..7)
+            .map(|_| (rng.next_f32() * u32::MAX as f32) as u32)
+            .collect();
+        let position = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0;
+        let normal = relight_core::sampling::uniform_sphere(rng.next_vec2());
+        let mut fast = Sums::default();
+        let mut portable = Sums::default();
+        let mut everything = Sums::default();
+        let end = vals.padded_len();
+        accumulate::<false>(&vals, 0, end, position, normal, Some(&row), &mut fast);
+        accumulate_portable::<false>(&vals, 0, end, position, normal, Some(&row), &mut portable);
+        accumulate_portable::<false>(&vals, 0, end, position, normal, None, &mut everything);
+        for channel in 0..3 {
+            let exact = portable.irradiance[channel];
+            assert!((fast.irradiance[channel] - exact).abs() <= 1e-3 * exact.abs().max(1e-12));
+        }
+        // The row hides some of the light, so the test would see a mask
+        // that does nothing.
+        assert!(portable.irradiance[0] < 0.9 * everything.irradiance[0]);
     }
 }
 
@@ -273,7 +339,15 @@ fn averaged_light_follows_the_bright_val() {
     vals.extend(&[bright, dark]);
     vals.pad();
     let mut sums = Sums::default();
-    accumulate_portable::<false>(&vals, 0, vals.padded_len(), Vec3::ZERO, Vec3::Y, &mut sums);
+    accumulate_portable::<false>(
+        &vals,
+        0,
+        vals.padded_len(),
+        Vec3::ZERO,
+        Vec3::Y,
+        None,
+        &mut sums,
+    );
     let averaged_x = sums.weighted_position[0] / sums.weight;
     assert!(
         (averaged_x - (-0.5 + 1.0 / 101.0)).abs() < 1e-4,
@@ -380,6 +454,65 @@ fn closed_cube(albedo: f32, light: Light) -> Scene {
     });
     scene.lights.push(light);
     scene
+}
+
+/// Two closed cubes side by side, 0.1 m apart, a point light in the
+/// left one: no light can reach the right one.
+fn two_closed_cubes() -> Scene {
+    let mut scene = closed_cube(
+        0.7,
+        Light::Point {
+            position: Vec3::new(-1.05, 0.3, 0.2),
+            intensity: Rgb::splat(5.0),
+        },
+    );
+    let count = scene.mesh.positions.len();
+    let triangles = scene.mesh.triangles.len();
+    for index in 0..count {
+        let position = scene.mesh.positions[index];
+        scene.mesh.positions[index] = position - Vec3::X * 1.05;
+        scene.mesh.positions.push(position + Vec3::X * 1.05);
+    }
+    for index in 0..triangles {
+        let [a, b, c] = scene.mesh.triangles[index];
+        let shift = |vertex: u32| vertex + count as u32;
+        scene.mesh.triangles.push([shift(a), shift(b), shift(c)]);
+        scene.mesh.material_ids.push(0);
+    }
+    scene
+}
+
+#[test]
+fn light_does_not_pass_through_walls() {
+    // The right cube's sparse points face the left cube's lit walls
+    // through two walls; the disc occlusion of section 3.3 stops only
+    // part of that light, while the traced visibility between sparse
+    // points stops it all. (Texels by the gap also interpolate from the
+    // other cube's points; the final gather, on by default, traces those.)
+    let context = context_of(two_closed_cubes(), TexelDensity::TargetResolution(64));
+    let receivers = &context.atlas.receivers;
+    let light_on = |right: bool, params: LightSkinParams| {
+        let technique = updated(&context, params);
+        let irradiance = technique.receiver_irradiance().unwrap();
+        (0..receivers.len())
+            .filter(|&index| (receivers.positions[index].x > 0.0) == right)
+            .map(|index| irradiance[index].x as f64)
+            .sum::<f64>()
+    };
+    let params = |visibility: bool| LightSkinParams {
+        visibility,
+        occlusion: !visibility,
+        ..LightSkinParams::default()
+    };
+    let lit = light_on(false, params(true));
+    let leaked = light_on(true, params(true));
+    let leaked_without = light_on(true, params(false));
+    println!("lit cube {lit}, dark cube {leaked} ({leaked_without} without visibility)");
+    assert!(lit > 0.0);
+    // Measured: 8e-5 of the lit cube's light without visibility (the
+    // discs stop most of it in a box this simple), none with it.
+    assert!(leaked_without > 1e-5 * lit, "{leaked_without} of {lit}");
+    assert!(leaked < 1e-7 * lit, "{leaked} of {lit}");
 }
 
 #[test]
@@ -654,8 +787,8 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
 
 #[test]
 fn accuracy_within_twenty_percent_of_one_bounce_path_tracing() {
-    // The bound: 20 % relRMSE of the indirect-only image with
-    // occlusion on, on the point-lit Cornell box and the corridor. The
+    // The bound: 20 % relRMSE of the indirect-only image at the
+    // defaults, on the point-lit Cornell box and the corridor. The
     // references' own noise (printed) is a few percent and adds to the
     // measured error in quadrature, so the bound is met with that noise in.
     for scene in ["cornell-box-point", "corridor"] {
@@ -674,15 +807,34 @@ fn accuracy_within_twenty_percent_of_one_bounce_path_tracing() {
 }
 
 #[test]
-fn occlusion_lowers_the_error() {
+fn occlusion_lowers_the_error_of_the_papers_method() {
     // Section 3.3 exists to darken what indirect light cannot reach; on the
-    // Cornell box (two blocks shadowing walls and floor) it must help.
-    let (with_occlusion, ..) = accuracy("cornell-box-point", &[]);
-    let (without, ..) = accuracy("cornell-box-point", &[("occlusion", "false")]);
+    // Cornell box (two blocks shadowing walls and floor) it must help the
+    // paper's method, which has no other visibility.
+    let paper = [("visibility", "false")];
+    let (with_occlusion, ..) = accuracy("cornell-box-point", &[paper[0], ("occlusion", "true")]);
+    let (without, ..) = accuracy("cornell-box-point", &[paper[0], ("occlusion", "false")]);
     assert!(
         with_occlusion < without * 0.8,
         "with {with_occlusion}, without {without}"
     );
+}
+
+#[test]
+fn traced_visibility_lowers_the_error_below_the_disc_occlusion() {
+    // The defaults (visibility traced between sparse points, no disc
+    // occlusion) against the paper's occlusion: at full resolution the
+    // point-lit box's lightmap measured 13.5 % against 18.3 %, its image
+    // tiles 2.5 % against 14.1 % (relight converge
+    // scenes/cornell-box-point/scene.toml -t lightskin --sweep
+    // visibility=false,true --sweep occlusion=true,false). A fifth better
+    // leaves room for the reference's noise.
+    let (traced, ..) = accuracy("cornell-box-point", &[]);
+    let (discs, ..) = accuracy(
+        "cornell-box-point",
+        &[("visibility", "false"), ("occlusion", "true")],
+    );
+    assert!(traced < discs * 0.8, "traced {traced}, discs {discs}");
 }
 
 #[test]
@@ -706,27 +858,19 @@ fn points_in_space_gather_one_bounce_from_the_surfaces_around_them() {
 
 /// The bound for LightSkin on the closed boxes: the indirect image
 /// within 15 % relRMSE of the one-bounce path tracer over 8x8-pixel tile
-/// means. The point-lit box misses it: 16.4 % at full resolution (relight
-/// converge scenes/cornell-box-point/scene.toml -t lightskin), 0.92x the
-/// light, and neither more sparse points (16384) nor finer shadow maps
-/// (128) move it, while the disc occlusion off gives 21.2 % and 1.10x: the
-/// discs' occlusion, an approximation of visibility, is what limits it
-/// there. That box is held to what it measures (with the reference's
-/// noise) so that a regression shows; the others to the bound. At half
-/// the cameras' resolution the reference's own tile noise is about 2 %.
+/// means. With the disc occlusion the point-lit box missed it (14.1 to
+/// 16.4 %, 0.92x the light: the discs approximate visibility); with the
+/// visibility traced between sparse points every box measures 1 to 6 %
+/// at full resolution (relight converge SCENE -t lightskin). At half the
+/// cameras' resolution the reference's own tile noise is about 2 %.
 #[test]
 fn closed_boxes_within_fifteen_percent_over_tiles_of_one_bounce() {
     let measured = relight_render::convergence::closed_box_measurements(|context, _| {
         Box::new(updated(context, LightSkinParams::default()))
     });
     for (scene, measured) in measured {
-        let bound = if scene == "cornell-box-point/scene.toml" {
-            0.17
-        } else {
-            0.15
-        };
         assert!(
-            measured.image_tiles <= bound,
+            measured.image_tiles <= 0.15,
             "{scene}: {}",
             measured.image_tiles
         );
