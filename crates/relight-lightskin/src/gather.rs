@@ -141,59 +141,37 @@ pub fn accumulate_many<const SPREAD: bool>(
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
-            // A row nobody reads stands in when there is no visibility.
-            let everything = [u32::MAX];
-            let row = |index: usize| visible.map_or(&everything[..], |rows| rows[index]);
+            let rows_from = |index: usize| visible.map(|rows| &rows[index..]);
             let mut index = 0;
             while index + RECEIVERS_PER_PASS <= sums.len() {
-                let mut group: [Sums; RECEIVERS_PER_PASS] =
-                    std::array::from_fn(|offset| sums[index + offset]);
                 // SAFETY: AVX2 and FMA are present (checked above); the
                 // range lies inside every column (padding to LANES).
                 unsafe {
-                    let positions = std::array::from_fn(|offset| positions[index + offset]);
-                    let normals = std::array::from_fn(|offset| normals[index + offset]);
-                    let rows = std::array::from_fn(|offset| row(index + offset));
-                    if visible.is_some() {
-                        accumulate_avx2_group::<SPREAD, true, RECEIVERS_PER_PASS>(
-                            vals, start, end, positions, normals, rows, &mut group,
-                        )
-                    } else {
-                        accumulate_avx2_group::<SPREAD, false, RECEIVERS_PER_PASS>(
-                            vals, start, end, positions, normals, rows, &mut group,
-                        )
-                    }
+                    accumulate_avx2_receivers::<SPREAD, RECEIVERS_PER_PASS>(
+                        vals,
+                        start,
+                        end,
+                        &positions[index..],
+                        &normals[index..],
+                        rows_from(index),
+                        &mut sums[index..],
+                    )
                 };
-                sums[index..index + RECEIVERS_PER_PASS].copy_from_slice(&group);
                 index += RECEIVERS_PER_PASS;
             }
             for rest in index..sums.len() {
-                let mut group = [sums[rest]];
                 // SAFETY: as above.
                 unsafe {
-                    if visible.is_some() {
-                        accumulate_avx2_group::<SPREAD, true, 1>(
-                            vals,
-                            start,
-                            end,
-                            [positions[rest]],
-                            [normals[rest]],
-                            [row(rest)],
-                            &mut group,
-                        )
-                    } else {
-                        accumulate_avx2_group::<SPREAD, false, 1>(
-                            vals,
-                            start,
-                            end,
-                            [positions[rest]],
-                            [normals[rest]],
-                            [row(rest)],
-                            &mut group,
-                        )
-                    }
+                    accumulate_avx2_receivers::<SPREAD, 1>(
+                        vals,
+                        start,
+                        end,
+                        &positions[rest..],
+                        &normals[rest..],
+                        rows_from(rest),
+                        &mut sums[rest..],
+                    )
                 };
-                sums[rest] = group[0];
             }
             return;
         }
@@ -209,6 +187,38 @@ pub fn accumulate_many<const SPREAD: bool>(
             &mut sums[index],
         );
     }
+}
+
+/// The first `R` receivers of the slices through the AVX2 kernel, with the
+/// visibility mask when `visible` is given.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn accumulate_avx2_receivers<const SPREAD: bool, const R: usize>(
+    vals: &Vals,
+    start: usize,
+    end: usize,
+    positions: &[Vec3],
+    normals: &[Vec3],
+    visible: Option<&[&[u32]]>,
+    sums: &mut [Sums],
+) {
+    // A row nobody reads stands in when there is no visibility.
+    let everything = [u32::MAX];
+    let mut group: [Sums; R] = std::array::from_fn(|offset| sums[offset]);
+    let positions = std::array::from_fn(|offset| positions[offset]);
+    let normals = std::array::from_fn(|offset| normals[offset]);
+    let rows = std::array::from_fn(|offset| visible.map_or(&everything[..], |rows| rows[offset]));
+    if visible.is_some() {
+        accumulate_avx2_group::<SPREAD, true, R>(
+            vals, start, end, positions, normals, rows, &mut group,
+        )
+    } else {
+        accumulate_avx2_group::<SPREAD, false, R>(
+            vals, start, end, positions, normals, rows, &mut group,
+        )
+    }
+    sums[..R].copy_from_slice(&group);
 }
 
 #[cfg(target_arch = "x86_64")]
