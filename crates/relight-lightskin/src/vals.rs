@@ -124,7 +124,7 @@ impl Vals {
             .extend(std::iter::repeat_n(NO_SITE, vals.len()));
         self.site_barycentric
             .extend(std::iter::repeat_n(Vec2::ZERO, vals.len()));
-        self.extend_columns(vals);
+        self.extend_columns(vals.iter());
     }
 
     /// Appends real VALs with their sites (triangle, barycentric).
@@ -134,11 +134,10 @@ impl Vals {
             self.site_triangle.push(triangle);
             self.site_barycentric.push(barycentric);
         }
-        let plain: Vec<Val> = vals.iter().map(|(val, _)| *val).collect();
-        self.extend_columns(&plain);
+        self.extend_columns(vals.iter().map(|(val, _)| val));
     }
 
-    fn extend_columns(&mut self, vals: &[Val]) {
+    fn extend_columns<'a>(&mut self, vals: impl Iterator<Item = &'a Val>) {
         for val in vals {
             self.px.push(val.position.x);
             self.py.push(val.position.y);
@@ -159,8 +158,8 @@ impl Vals {
                 self.position_sum[axis] += coordinate;
                 self.position_square_sum[axis] += coordinate * coordinate;
             }
+            self.count += 1;
         }
-        self.count += vals.len();
     }
 
     /// Pads to a multiple of [`LANES`] with VALs that have no power and no
