@@ -141,6 +141,16 @@
 //!   corner to corner keeps its near field (the first frame gathers four
 //!   times): living room tiles 9.6 -> 6.8 %, camera-visible lightmap
 //!   16.3 -> 14.3 %, light 0.932 -> 0.971x.
+//! - On Sponza the gather's own noise is what keeps the camera-visible
+//!   lightmap above 15 %: its 260k gathering texels get the automatic
+//!   count's floor, 64 rays each, and with `final_gather_rays=256` the
+//!   visible lightmap measures 15.9 -> 9.7 %, all receivers 17.4 ->
+//!   11.8 %, 8x8 tiles 8.0 -> 7.1 % (`relight converge
+//!   ../shared/scenes/sponza/scene.toml -t srp --reference-samples 1024
+//!   --sweep final_gather_rays=0,256`). It costs the frame 58 / 51 ->
+//!   128 / 79 ms (two interleaved rounds of `relight bench`, 20 frames,
+//!   two cores) and the gather 98 -> 302 MB, so the default stays at the
+//!   floor until a count between the two is measured.
 
 mod bake;
 mod kernels;
