@@ -265,19 +265,20 @@ impl Vals {
     /// Reorders the real VALs: the `index`-th becomes `order[index]`'s.
     fn permute(&mut self, order: &[u32]) {
         debug_assert_eq!(order.len(), self.count);
-        fn reorder<T: Copy>(column: &mut [T], order: &[u32]) {
-            let moved: Vec<T> = order.iter().map(|&from| column[from as usize]).collect();
-            column[..moved.len()].copy_from_slice(&moved);
+        // One scratch column per element type, reused across columns.
+        fn reorder<T: Copy>(column: &mut [T], order: &[u32], scratch: &mut Vec<T>) {
+            scratch.clear();
+            scratch.extend(order.iter().map(|&from| column[from as usize]));
+            column[..scratch.len()].copy_from_slice(scratch);
         }
+        let mut floats = Vec::with_capacity(order.len());
         for column in self.columns_mut() {
-            reorder(column, order);
+            reorder(column, order, &mut floats);
         }
-        for column in [&mut self.anchor, &mut self.site_triangle] {
-            if column.len() >= order.len() {
-                reorder(column, order);
-            }
-        }
-        reorder(&mut self.site_barycentric, order);
+        let mut indices = Vec::with_capacity(order.len());
+        reorder(&mut self.anchor, order, &mut indices);
+        reorder(&mut self.site_triangle, order, &mut indices);
+        reorder(&mut self.site_barycentric, order, &mut Vec::new());
     }
 
     pub fn padded_len(&self) -> usize {

@@ -123,12 +123,6 @@ impl PointVisibility {
         &self.bits[row * self.words_per_row..(row + 1) * self.words_per_row]
     }
 
-    /// Whether static point `point` sees anchor `anchor`.
-    #[inline]
-    pub fn sees(&self, point: usize, anchor: u32) -> bool {
-        row_sees(self.row(point), anchor)
-    }
-
     /// Pairs of static points that see each other, over all pairs.
     pub fn visible_fraction(&self) -> f64 {
         if self.points < 2 {
