@@ -171,7 +171,7 @@ impl PrmBake {
                 )
                 .map_err(|error| TechniqueError::Other(format!("PRM pane compression: {error}")))?;
                 progress.finish();
-                panes = components.basis.iter().map(|&v| f16::from_f32(v)).collect();
+                panes = components.basis;
                 (
                     components.rank,
                     components.coefficients,

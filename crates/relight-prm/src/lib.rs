@@ -22,7 +22,7 @@
 //! |---|---|---|
 //! | `entries` | 4096 | entry points (the paper: 4096) |
 //! | `clusters` | 256 | clusters of entry points (the paper: 256) |
-//! | `rank` | 32 | basis panes kept by compression; 0 = store every cluster's pane |
+//! | `rank` | 128 | basis panes kept by compression; 0, or at least `clusters`, = store every cluster's pane |
 //! | `top_k` | 0 | clusters summed per frame (the paper: 32); 0 = all |
 //! | `selection` | `"contribution"` | how the top K are ranked: `"contribution"` (weight times the pane's total luminance) or `"weight"` (mean entry irradiance alone, as the paper does) |
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
@@ -35,12 +35,36 @@
 //! | `seed` | 1 | |
 //!
 //! Why compression and all clusters by default: the per-frame cost is the
-//! number of panes summed, and 32 principal components of all 256 clusters
-//! cost the same as the paper's 32 strongest clusters while losing far less
-//! light (Cornell box lightmap error 16 % against 48 %: in a room lit
-//! everywhere, the 224 weaker clusters carry half the indirect light). They
-//! also take an eighth of the memory. `rank = 0, top_k = 32` is the paper's
-//! configuration.
+//! number of panes summed, and principal components of all 256 clusters
+//! lose far less light than the paper's strongest clusters at the same
+//! cost (Cornell box lightmap error 16 % at 32 components against 48 % for
+//! the 32 strongest clusters: in a room lit everywhere, the 224 weaker
+//! clusters carry half the indirect light). `rank = 0, top_k = 32` is the
+//! paper's configuration.
+//!
+//! Why 128 components: the components are what limits PRM's accuracy on
+//! every scene measured, not the entry points or clusters. A pane is
+//! bright near its own entry points, so the panes overlap little and their
+//! energy spreads over many components: 32 keep only 72-77 % of it on the
+//! Cornell box, the corridor and a generated atrium, 128 keep 95-98 %
+//! (`relight bench`'s memory report gives the share). A light that
+//! reaches one part of a building is then smeared over the others.
+//! Camera-visible lightmap / 8x8-tile relRMSE at rank 32 -> 128
+//! (`relight converge SCENE -t prm --sweep rank=32,128`, Sponza with
+//! `--reference-samples 1024`): Sponza's point light 22.0 / 18.2 -> 15.2 /
+//! 13.4 %, Sponza's sun 19.3 / 12.1 -> 18.6 / 11.1 %, the living room
+//! 15.2 / 9.7 -> 14.4 / 8.5 %, the atrium (`relight gen atrium`) 20.6 /
+//! 19.4 -> 14.4 / 12.4 % (64: 17.6 / 16.1 %, every pane: 14.0 / 10.9 %);
+//! over tiles the corridor goes 19.8 -> 14.1 % and the Cornell box with a
+//! light by a wall 20.2 -> 8.5 %. It costs four times the pane sum and the
+//! panes' memory of rank 32, half of storing every pane. Sponza (378k
+//! receivers): frame 44.3 / 37.7 -> 59.9 / 57.3 ms, pane sum 5.1 / 4.6 ->
+//! 17.6 / 20.0 ms, memory 171 -> 389 MB, bake file 73 -> 291 MB; the
+//! atrium (113k): pane sum 1.6 / 1.7 -> 5.8 / 6.0 ms of a 260-270 ms frame
+//! (`relight bench SCENE -t prm --bake B --set rank=R --frames 20
+//! --shading-resolution 0x0`, two interleaved rounds). The bake's peak
+//! stays where it was (Sponza 939 -> 949 MB, atrium 292 -> 299 MB) since
+//! the components are written as f16 in place.
 //!
 //! Choose PRM for small and medium static scenes with few, moving lights
 //! where a lightmap is wanted anyway: its per-frame cost is K lightmap-sized
@@ -153,7 +177,7 @@ impl Default for PrmParams {
             selection: "contribution".into(),
             paths_per_entry: 4,
             entry_area_samples: 2,
-            rank: 32,
+            rank: 128,
             normal_weight: 0.5,
             max_memory_mib: 2048,
             space_rays: 64,
@@ -176,8 +200,6 @@ impl PrmParams {
             Some("clusters must be between 1 and entries")
         } else if self.selection != "weight" && self.selection != "contribution" {
             Some("selection must be \"weight\" or \"contribution\"")
-        } else if self.rank > self.clusters {
-            Some("rank must be at most clusters (0 = no compression)")
         } else if self.entry_area_samples == 0 {
             Some("entry_area_samples must be at least 1")
         } else if self.space_rays == 0 {

@@ -355,9 +355,13 @@ impl Technique for Prm {
         let mut entries = vec![
             MemoryEntry::new(
                 if bake.rank > 0 {
-                    "basis panes (f16 RGB)"
+                    format!(
+                        "{} basis panes (f16 RGB, {:.1} % of the panes' energy)",
+                        bake.rank,
+                        bake.captured_energy * 100.0
+                    )
                 } else {
-                    "panes (f16 RGB)"
+                    "panes (f16 RGB)".to_string()
                 },
                 bake.panes.len() * 2,
             ),
