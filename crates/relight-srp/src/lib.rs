@@ -62,7 +62,8 @@
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent (glossy reflection of the probes) |
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the probes over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
-//! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
+//! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
+//! | `final_gather_min_rays` | 128 | the automatic ray count's floor, which large scenes get: Sponza's 260k gathering receivers get it (see below) (run time) |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -141,16 +142,25 @@
 //!   corner to corner keeps its near field (the first frame gathers four
 //!   times): living room tiles 9.6 -> 6.8 %, camera-visible lightmap
 //!   16.3 -> 14.3 %, light 0.932 -> 0.971x.
-//! - On Sponza the gather's own noise is what keeps the camera-visible
-//!   lightmap above 15 %: its 260k gathering texels get the automatic
-//!   count's floor, 64 rays each, and with `final_gather_rays=256` the
-//!   visible lightmap measures 15.9 -> 9.7 %, all receivers 17.4 ->
-//!   11.8 %, 8x8 tiles 8.0 -> 7.1 % (`relight converge
+//! - On Sponza the gather's own noise decides the camera-visible
+//!   lightmap's error: its 260k gathering texels get the automatic count's
+//!   floor (`final_gather_min_rays`). At 64 / 128 / 256 rays each the
+//!   visible lightmap measures 15.9 / 11.6 / 9.7 %, all receivers 17.4 /
+//!   13.6 / 11.8 %, 8x8 tiles 8.0 / 7.4 / 7.1 % (`relight converge
 //!   ../shared/scenes/sponza/scene.toml -t srp --reference-samples 1024
-//!   --sweep final_gather_rays=0,256`). It costs the frame 58 / 51 ->
-//!   128 / 79 ms (two interleaved rounds of `relight bench`, 20 frames,
-//!   two cores) and the gather 98 -> 302 MB, so the default stays at the
-//!   floor until a count between the two is measured.
+//!   --sweep final_gather_rays=0,128,256`, 0 then meaning the old floor of
+//!   64). The floor is 128, the least that keeps Sponza within 15 %: it
+//!   costs the frame 59 / 61 -> 83 / 80 ms (gather 50 / 51 -> 74 / 71 ms)
+//!   and the gather 98 -> 167 MB, where 256 rays cost 128 / 79 ms and
+//!   302 MB (`relight bench ../shared/scenes/sponza/scene.toml -t srp
+//!   --bake B --set final_gather_rays=0|128|256 --frames 20
+//!   --shading-resolution 0x0`, two interleaved rounds each, two cores).
+//!   On the living room (267k of 278k texels gather) the floor of 128
+//!   takes the visible lightmap from 14.3 to 12.3 % (tiles 6.8 % both;
+//!   `relight converge ../shared/scenes/living-room/scene.toml -t srp
+//!   --sweep final_gather_min_rays=64,128`) for a frame of 118 / 108 ->
+//!   120 / 125 ms and the gather 112 -> 184 MB. Scenes with fewer than
+//!   65k gathering texels already get more than the floor.
 
 mod bake;
 mod kernels;
@@ -221,6 +231,7 @@ pub struct SrpParams {
     pub space_rays: u32,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
+    pub final_gather_min_rays: u32,
     pub seed: u64,
 }
 
@@ -250,6 +261,7 @@ impl Default for SrpParams {
             space_rays: 64,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
+            final_gather_min_rays: 128,
             seed: 1,
         }
     }
@@ -301,9 +313,7 @@ impl SrpParams {
             Some("bounces must be at least 1".into())
         } else if self.space_rays == 0 {
             Some("space_rays must be at least 1".into())
-        } else if let Err(problem) =
-            FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)
-        {
+        } else if let Err(problem) = self.final_gather_settings() {
             Some(problem)
         } else if !(self.specular.is_finite() && (0.0..=1.0).contains(&self.specular)) {
             Some("specular must be between 0 and 1".into())
@@ -327,12 +337,15 @@ impl SrpParams {
             specular: self.specular,
             space_rays: self.space_rays,
             // validate() has checked it.
-            final_gather: FinalGatherSettings::from_params(
-                &self.final_gather,
-                self.final_gather_rays,
-            )
-            .unwrap_or(FinalGatherSettings::OFF),
+            final_gather: self
+                .final_gather_settings()
+                .unwrap_or(FinalGatherSettings::OFF),
         }
+    }
+
+    fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
+        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
+            .with_least_rays(self.final_gather_min_rays)
     }
 }
 
