@@ -190,7 +190,6 @@ pub fn principal_components(
             blocks_of_rows[block].push(part);
         }
     }
-    let coefficients_ref = &coefficients;
     blocks_of_rows
         .into_par_iter()
         .enumerate()
@@ -204,7 +203,7 @@ pub fn principal_components(
             for k in 0..row_count {
                 let row = &converted[k * width..(k + 1) * width];
                 for j in 0..rank {
-                    let weight = coefficients_ref[k * rank + j];
+                    let weight = coefficients[k * rank + j];
                     if weight == 0.0 {
                         continue;
                     }

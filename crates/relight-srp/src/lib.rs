@@ -148,12 +148,12 @@
 //!   visible lightmap measures 15.9 / 11.6 / 9.7 %, all receivers 17.4 /
 //!   13.6 / 11.8 %, 8x8 tiles 8.0 / 7.4 / 7.1 % (`relight converge
 //!   ../shared/scenes/sponza/scene.toml -t srp --reference-samples 1024
-//!   --sweep final_gather_rays=0,128,256`, 0 then meaning the old floor of
-//!   64). The floor is 128, the least that keeps Sponza within 15 %: it
-//!   costs the frame 59 / 61 -> 83 / 80 ms (gather 50 / 51 -> 74 / 71 ms)
-//!   and the gather 98 -> 167 MB, where 256 rays cost 128 / 79 ms and
-//!   302 MB (`relight bench ../shared/scenes/sponza/scene.toml -t srp
-//!   --bake B --set final_gather_rays=0|128|256 --frames 20
+//!   --sweep final_gather_rays=64,128,256`, the counts set explicitly).
+//!   The floor is 128, the least that keeps Sponza within 15 %: against
+//!   64 it costs the frame 59 / 61 -> 83 / 80 ms (gather 50 / 51 -> 74 /
+//!   71 ms) and the gather 98 -> 167 MB, where 256 rays cost 128 / 79 ms
+//!   and 302 MB (`relight bench ../shared/scenes/sponza/scene.toml -t srp
+//!   --bake B --set final_gather_rays=64|128|256 --frames 20
 //!   --shading-resolution 0x0`, two interleaved rounds each, two cores).
 //!   On the living room (267k of 278k texels gather) the floor of 128
 //!   takes the visible lightmap from 14.3 to 12.3 % (tiles 6.8 % both;
