@@ -96,6 +96,19 @@ fn combinations(sweeps: &[(String, Vec<String>)]) -> Vec<Vec<(String, String)>> 
     settings
 }
 
+/// A row's name: every parameter that is not a default, `--preset` and
+/// `--set` included, so that a table read on its own says what ran.
+fn setting_label(pairs: &[(String, String)]) -> String {
+    if pairs.is_empty() {
+        return "defaults".to_string();
+    }
+    pairs
+        .iter()
+        .map(|(key, value)| format!("{key}={value}"))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 struct Row {
     setting: String,
     bounces: u32,
@@ -157,15 +170,7 @@ pub fn run(
     for (index, swept) in combinations(&sweeps).into_iter().enumerate() {
         let mut pairs = fixed.clone();
         pairs.extend(swept.iter().cloned());
-        let setting = if swept.is_empty() {
-            "defaults".to_string()
-        } else {
-            swept
-                .iter()
-                .map(|(key, value)| format!("{key}={value}"))
-                .collect::<Vec<_>>()
-                .join(" ")
-        };
+        let setting = setting_label(&pairs);
         if !quiet {
             eprintln!("== {setting}");
         }
@@ -484,5 +489,19 @@ mod tests {
         assert_eq!(combinations(&[]), vec![Vec::new()]);
         assert!(parse_sweep("order").is_err());
         assert!(parse_sweep("order=").is_err());
+    }
+
+    #[test]
+    fn rows_name_fixed_settings_as_well_as_swept_ones() {
+        let pair = |key: &str, value: &str| (key.to_string(), value.to_string());
+        assert_eq!(setting_label(&[]), "defaults");
+        assert_eq!(
+            setting_label(&[
+                pair("preset", "high"),
+                pair("order", "2"),
+                pair("rank", "64")
+            ]),
+            "preset=high order=2 rank=64"
+        );
     }
 }
