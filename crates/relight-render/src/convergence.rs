@@ -674,3 +674,30 @@ pub fn closed_box_measurements(
         })
         .collect()
 }
+
+/// The shipped view from inside two-rooms' unlit room, which sees the lit
+/// room only through the doorway: nearly all its light has bounced at
+/// least twice, so it is where a technique's lost or leaked multi-bounce
+/// light shows.
+pub const UNLIT_ROOM_VIEW: &str = "two-rooms/scene-unlit-room.toml";
+
+/// [`UNLIT_ROOM_VIEW`] at half its camera's resolution, with the technique
+/// `make` returns for it, measured by [`measure_against_path_tracer`] at
+/// 256 paths: what the techniques' tests hold to the 0.85-1.15x of
+/// the path tracer's light in view. Prints the light ratio and the tile
+/// error; fails when the reference's own tile noise exceeds 3 %.
+pub fn unlit_room_measurement(
+    make: impl FnOnce(&std::sync::Arc<SceneContext>) -> Box<dyn Technique>,
+) -> Measurement {
+    let context = shipped_context(UNLIT_ROOM_VIEW, 2);
+    let technique = make(&context);
+    let (measured, noise) = measure_against_path_tracer(&context, technique.as_ref(), 256, 256);
+    println!(
+        "unlit room: light ratio {:.3}, image 8x8 tiles {:.1} % (reference noise {:.1} %)",
+        measured.light_ratio,
+        measured.image_tiles * 100.0,
+        noise.image_tiles * 100.0
+    );
+    assert!(noise.image_tiles < 0.03, "{}", noise.image_tiles);
+    measured
+}
