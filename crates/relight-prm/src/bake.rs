@@ -54,6 +54,7 @@ pub struct PrmBake {
 }
 
 /// A virtual point light on a light path.
+#[derive(Clone, Copy)]
 struct VirtualLight {
     position: Vec3,
     /// Normal on the side the light leaves from.
@@ -557,7 +558,10 @@ pub(crate) fn cluster_entries(
 /// Virtual lights of the light paths leaving one entry point with unit
 /// irradiance (equations 1 to 3): the entry point itself reflects
 /// albedo x area; each further vertex carries the flux on, with cosine
-/// directions and Russian roulette by albedo luminance.
+/// directions and Russian roulette by albedo luminance. Every path starts
+/// at the entry point, so the entry's light is one virtual light with the
+/// whole flux rather than one per path: each virtual light costs a shadow
+/// ray to every receiver, and the copies would only repeat them.
 fn light_path_vertices(
     context: &SceneContext,
     entries: &Entries,
@@ -573,14 +577,14 @@ fn light_path_vertices(
         normal: entries.normals[entry],
         flux: entries.albedos[entry] * area_per_entry,
     };
-    let mut lights = Vec::new();
+    let mut lights = vec![start];
     for path in 0..paths {
         let mut rng = SampleStream::new(params.seed, entry as u64, path as u64);
         let mut current = VirtualLight {
             flux: start.flux / paths as f32,
             ..start
         };
-        for _ in 0..64 {
+        for bounce in 0..64 {
             let direction = cosine_hemisphere_around(current.normal, rng.next_vec2());
             let ray = Ray {
                 origin: current.position + current.normal * epsilon,
@@ -595,8 +599,11 @@ fn light_path_vertices(
                     flux: Rgb::ZERO,
                 },
             );
+            let at_entry = bounce == 0;
             let Some(hit) = context.bvh.intersect(&ray) else {
-                lights.push(previous);
+                if !at_entry {
+                    lights.push(previous);
+                }
                 break;
             };
             let triangle = hit.triangle as usize;
@@ -604,7 +611,9 @@ fn light_path_vertices(
             let albedo = scene.albedo_at(triangle, hit.barycentric);
             let survival = luminance(albedo).clamp(0.0, 1.0);
             let flux = previous.flux;
-            lights.push(previous);
+            if !at_entry {
+                lights.push(previous);
+            }
             if survival <= 0.0 || rng.next_f32() >= survival {
                 break;
             }
