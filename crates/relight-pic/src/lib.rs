@@ -136,8 +136,9 @@
 //!   not move it (`relight converge ../shared/scenes/sponza/scene-point.toml
 //!   -t pic --preset high --max-bounces 1 --set bounces=1 --sweep
 //!   links=512,1024`). All bounces (the same command with
-//!   `--reference-samples 1024` instead of the one-bounce options): tiles 17.6 / 15.3 / 14.4 %, visible lightmap 13.4 /
-//!   11.2 / 10.1 %, 0.868 / 0.895 / 0.909x. So `--set links=1024` meets
+//!   `--reference-samples 1024` instead of the one-bounce options): tiles
+//!   17.6 / 15.3 / 14.4 %, visible lightmap 13.4 / 11.2 / 10.1 %, 0.868 /
+//!   0.895 / 0.909x. So `--set links=1024` meets
 //!   the 15 % bound there; it costs the cache lighting 5-6 -> 19-21 ms a
 //!   frame and 307 MB more (`relight bench ... --frames 20`, two
 //!   interleaved pairs), and the bake 33 -> 109 s and 113 -> 420 MB on
