@@ -599,11 +599,11 @@ fn light_path_vertices(
                     flux: Rgb::ZERO,
                 },
             );
-            let at_entry = bounce == 0;
+            // The entry point's light is already in, once for all paths.
+            if bounce > 0 {
+                lights.push(previous);
+            }
             let Some(hit) = context.bvh.intersect(&ray) else {
-                if !at_entry {
-                    lights.push(previous);
-                }
                 break;
             };
             let triangle = hit.triangle as usize;
@@ -611,9 +611,6 @@ fn light_path_vertices(
             let albedo = scene.albedo_at(triangle, hit.barycentric);
             let survival = luminance(albedo).clamp(0.0, 1.0);
             let flux = previous.flux;
-            if !at_entry {
-                lights.push(previous);
-            }
             if survival <= 0.0 || rng.next_f32() >= survival {
                 break;
             }

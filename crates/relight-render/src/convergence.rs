@@ -647,29 +647,42 @@ pub fn space_error(context: &SceneContext, technique: &dyn Technique, samples: u
     error_norms(&values, &reference.mean).relative_rmse
 }
 
-/// Each of [`CLOSED_BOXES`] at half its camera's resolution, with the
-/// technique `make` returns for it (updated under the scene's lights)
+/// The shipped scene `relative` at half its camera's resolution, with the
+/// technique `make` returns for it (updated under the scene's lights),
 /// measured by [`measure_against_path_tracer`] at 256 paths: what the
-/// techniques' tests hold to the bounds. Prints each scene's
-/// 8x8-tile error, and fails when the reference's own tile noise exceeds
-/// 3 %, where it would blur the bound.
+/// techniques' tests hold to the bounds. Prints the 8x8-tile error
+/// and the light ratio, and fails when the reference's own tile noise
+/// exceeds 3 %, where it would blur the bound.
+pub fn half_size_measurement(
+    relative: &str,
+    make: impl FnOnce(&std::sync::Arc<SceneContext>) -> Box<dyn Technique>,
+) -> Measurement {
+    let context = shipped_context(relative, 2);
+    let technique = make(&context);
+    let (measured, noise) = measure_against_path_tracer(&context, technique.as_ref(), 256, 256);
+    println!(
+        "{relative}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
+        measured.image_tiles * 100.0,
+        noise.image_tiles * 100.0,
+        measured.light_ratio
+    );
+    assert!(
+        noise.image_tiles < 0.03,
+        "{relative}: {}",
+        noise.image_tiles
+    );
+    measured
+}
+
+/// Each of [`CLOSED_BOXES`] measured by [`half_size_measurement`], with the
+/// technique `make` returns for it.
 pub fn closed_box_measurements(
     make: impl Fn(&std::sync::Arc<SceneContext>, &str) -> Box<dyn Technique>,
 ) -> Vec<(&'static str, Measurement)> {
     CLOSED_BOXES
         .iter()
         .map(|&scene| {
-            let context = shipped_context(scene, 2);
-            let technique = make(&context, scene);
-            let (measured, noise) =
-                measure_against_path_tracer(&context, technique.as_ref(), 256, 256);
-            println!(
-                "{scene}: image 8x8 tiles {:.1} % (reference noise {:.1} %), light ratio {:.3}",
-                measured.image_tiles * 100.0,
-                noise.image_tiles * 100.0,
-                measured.light_ratio
-            );
-            assert!(noise.image_tiles < 0.03, "{scene}: {}", noise.image_tiles);
+            let measured = half_size_measurement(scene, |context| make(context, scene));
             (scene, measured)
         })
         .collect()
@@ -681,23 +694,11 @@ pub fn closed_box_measurements(
 /// light shows.
 pub const UNLIT_ROOM_VIEW: &str = "two-rooms/scene-unlit-room.toml";
 
-/// [`UNLIT_ROOM_VIEW`] at half its camera's resolution, with the technique
-/// `make` returns for it, measured by [`measure_against_path_tracer`] at
-/// 256 paths: what the techniques' tests hold to the 0.85-1.15x of
-/// the path tracer's light in view. Prints the light ratio and the tile
-/// error; fails when the reference's own tile noise exceeds 3 %.
+/// [`UNLIT_ROOM_VIEW`] measured by [`half_size_measurement`]: what the
+/// techniques' tests hold to the 0.85-1.15x of the path tracer's
+/// light in view.
 pub fn unlit_room_measurement(
     make: impl FnOnce(&std::sync::Arc<SceneContext>) -> Box<dyn Technique>,
 ) -> Measurement {
-    let context = shipped_context(UNLIT_ROOM_VIEW, 2);
-    let technique = make(&context);
-    let (measured, noise) = measure_against_path_tracer(&context, technique.as_ref(), 256, 256);
-    println!(
-        "unlit room: light ratio {:.3}, image 8x8 tiles {:.1} % (reference noise {:.1} %)",
-        measured.light_ratio,
-        measured.image_tiles * 100.0,
-        noise.image_tiles * 100.0
-    );
-    assert!(noise.image_tiles < 0.03, "{}", noise.image_tiles);
-    measured
+    half_size_measurement(UNLIT_ROOM_VIEW, make)
 }
