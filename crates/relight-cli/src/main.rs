@@ -128,6 +128,21 @@ enum Command {
         technique: TechniqueOptions,
         #[command(flatten)]
         options: SceneOptions,
+        /// Bake only part INDEX (from 0) of COUNT parts of the work, for
+        /// `relight merge`; an output that already holds that shard of the
+        /// same scene and parameters is kept, so a rerun bakes only the
+        /// missing shards.
+        #[arg(long, value_name = "INDEX/COUNT")]
+        shard: Option<relight_technique::Shard>,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Join the shards of a sharded bake (`relight bake --shard I/N`) into
+    /// the bake file an unsharded bake writes, byte for byte.
+    Merge {
+        /// Every shard's file, in any order.
+        #[arg(required = true)]
+        shards: Vec<PathBuf>,
         #[arg(short, long)]
         output: PathBuf,
     },
@@ -297,6 +312,13 @@ fn create_technique(
     let payload = match (&options.bake, kind.needs_bake()) {
         (Some(path), true) => {
             let (header, payload) = relight_technique::read_bake(path)?;
+            if let Some(shard) = header.shard {
+                bail!(
+                    "{}: holds shard {shard} of a sharded bake: join all {} shards with `relight merge PART... -o FILE` and pass that file",
+                    path.display(),
+                    shard.count
+                );
+            }
             if header.technique != kind.name() {
                 bail!(
                     "{}: this bake is for technique '{}', not '{}'",
@@ -309,6 +331,15 @@ fn create_technique(
                 bail!(
                     "{}: this bake was made for another scene or lightmap resolution; bake again",
                     path.display()
+                );
+            }
+            if header.parameters_fingerprint
+                != relight_technique::parameters_fingerprint(kind, &context.scene, &pairs)
+            {
+                tracing::warn!(
+                    "{}: baked with other bake parameters ({}) than given; the bake's are used",
+                    path.display(),
+                    kind.bake_parameters().join(", ")
                 );
             }
             Some(payload)
@@ -460,20 +491,63 @@ fn run(cli: Cli) -> Result<()> {
             scene,
             technique,
             options,
+            shard,
             output,
         } => {
             let context = load_context(&scene, &options, quiet)?;
             let kind = techniques::find(&technique.technique)?;
-            let start = std::time::Instant::now();
-            let payload = kind.bake(&context, &technique.pairs()?, &Bars::new(quiet))?;
+            let pairs = technique.pairs()?;
             let header = relight_technique::BakeHeader {
                 technique: kind.name().to_string(),
                 payload_version: 1,
                 scene_fingerprint: context.fingerprint(),
+                parameters_fingerprint: relight_technique::parameters_fingerprint(
+                    kind,
+                    &context.scene,
+                    &pairs,
+                ),
+                shard,
+            };
+            if let Some(shard) = shard {
+                // A whole, checksummed file: a shard cut short is baked again.
+                if let Ok((existing, _)) = relight_technique::read_bake(&output) {
+                    if existing == header {
+                        say!(
+                            "{}: shard {shard} of this scene and parameters is already baked; kept (delete it to bake it again)",
+                            output.display(),
+                        );
+                        return Ok(());
+                    }
+                }
+            }
+            let start = std::time::Instant::now();
+            let bars = Bars::new(quiet);
+            let payload = match shard {
+                Some(shard) => kind.bake_shard(&context, &pairs, shard, &bars)?,
+                None => kind.bake(&context, &pairs, &bars)?,
             };
             relight_technique::write_bake_atomic(&output, &header, &payload)?;
             say!(
-                "baked {} in {:.2} s: {} ({} bytes)",
+                "baked {}{} in {:.2} s: {} ({} bytes)",
+                kind.name(),
+                shard
+                    .map(|shard| format!(" shard {shard}"))
+                    .unwrap_or_default(),
+                start.elapsed().as_secs_f64(),
+                output.display(),
+                payload.len()
+            );
+            Ok(())
+        }
+        Command::Merge { shards, output } => {
+            let start = std::time::Instant::now();
+            let set = relight_technique::read_shard_set(&shards)?;
+            let kind = techniques::find(&set.header.technique)?;
+            let payload = kind.merge_shards(set.payloads, &Bars::new(quiet))?;
+            relight_technique::write_bake_atomic(&output, &set.header, &payload)?;
+            say!(
+                "merged {} shards of {} in {:.2} s: {} ({} bytes)",
+                shards.len(),
                 kind.name(),
                 start.elapsed().as_secs_f64(),
                 output.display(),
@@ -602,6 +676,15 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
     }
     if let Some(bake) = bake {
         let (header, payload) = relight_technique::read_bake(bake)?;
+        if let Some(shard) = header.shard {
+            say!(
+                "bake            {} (shard {shard} of a {} bake, {} bytes): join the shards with `relight merge`",
+                bake.display(),
+                header.technique,
+                payload.len()
+            );
+            return Ok(());
+        }
         let matches = header.scene_fingerprint == context.fingerprint();
         say!(
             "bake            {} ({} payload version {}, {} bytes)",

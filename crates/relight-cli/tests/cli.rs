@@ -316,3 +316,114 @@ fn converge_sweeps_and_caches_a_reference_per_light_set() {
     );
     assert!(error.contains("--sweep order"), "{error}");
 }
+
+/// `relight bake --shard I/4` on one thread each, then `relight merge`,
+/// writes the bytes of the whole bake on all threads, for every technique
+/// that bakes, each on another shipped scene; a rerun keeps a finished
+/// shard, and a merge names missing or foreign shards.
+#[test]
+fn four_shards_merge_to_the_whole_bake() {
+    let folder = tempfile::tempdir().unwrap();
+    let path = |name: &str| folder.path().join(name);
+    for (technique, scene_name) in [
+        ("pic", "cornell-box"),
+        ("srp", "two-rooms"),
+        ("prm", "corridor"),
+    ] {
+        let bake = |extra: &[&str], output: &Path| {
+            run_ok(
+                relight()
+                    .args(["bake", "-q", "--technique", technique])
+                    .arg(scene(scene_name))
+                    .args(extra)
+                    .arg("-o")
+                    .arg(output),
+            )
+        };
+        let whole = path(&format!("{technique}.bake"));
+        bake(&[], &whole);
+        let parts: Vec<PathBuf> = (0..4)
+            .map(|index| path(&format!("{technique}-part-{index}.bake")))
+            .collect();
+        // Out of order, as a job array may finish them.
+        for index in [2usize, 0, 3, 1] {
+            bake(
+                &["--threads", "1", "--shard", &format!("{index}/4")],
+                &parts[index],
+            );
+        }
+        let merged = path(&format!("{technique}-merged.bake"));
+        run_ok(
+            relight()
+                .args(["merge", "-q"])
+                .args(parts.iter().rev())
+                .arg("-o")
+                .arg(&merged),
+        );
+        assert!(
+            std::fs::read(&whole).unwrap() == std::fs::read(&merged).unwrap(),
+            "{technique} on {scene_name}: the merged shards differ from the whole bake"
+        );
+    }
+
+    // A rerun of the job keeps the shards that are done.
+    let parts: Vec<PathBuf> = (0..4)
+        .map(|index| path(&format!("prm-part-{index}.bake")))
+        .collect();
+    let kept = run_ok(
+        relight()
+            .args(["bake", "--technique", "prm", "--shard", "1/4"])
+            .arg(scene("corridor"))
+            .arg("-o")
+            .arg(&parts[1]),
+    );
+    assert!(kept.contains("already baked"), "{kept}");
+    let missing = run_err(
+        relight()
+            .args(["merge"])
+            .arg(&parts[0])
+            .arg(&parts[2])
+            .arg("-o")
+            .arg(path("x.bake")),
+    );
+    assert!(
+        missing.contains("shards 1, 3 of 4 are missing"),
+        "{missing}"
+    );
+    let foreign = path("foreign.bake");
+    run_ok(
+        relight()
+            .args([
+                "bake",
+                "-q",
+                "--technique",
+                "prm",
+                "--shard",
+                "3/4",
+                "--set",
+                "entries=2048",
+            ])
+            .arg(scene("corridor"))
+            .arg("-o")
+            .arg(&foreign),
+    );
+    let mixed = run_err(
+        relight()
+            .args(["merge"])
+            .args(&parts[..3])
+            .arg(&foreign)
+            .arg("-o")
+            .arg(path("x.bake")),
+    );
+    assert!(mixed.contains("other bake parameters"), "{mixed}");
+    // A shard is not a bake a technique loads.
+    let refused = run_err(
+        relight()
+            .args(["render", "-q", "--technique", "prm", "--bake"])
+            .arg(&parts[0])
+            .arg(scene("corridor"))
+            .arg("-o")
+            .arg(path("x.png")),
+    );
+    assert!(refused.contains("relight merge"), "{refused}");
+}

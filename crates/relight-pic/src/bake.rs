@@ -8,7 +8,9 @@ use crate::PicParams;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::octahedral_encode;
-use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
+use relight_technique::{
+    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+};
 
 const PAYLOAD_VERSION: u32 = 2;
 
@@ -55,10 +57,50 @@ fn scale_exponent(largest: f32) -> i32 {
     }
 }
 
-impl PicBake {
+/// One shard of a PIC bake: the surfels, their hierarchy and the caches,
+/// which every shard computes alike, and the links of the caches
+/// `first_cache..`, before the bake-wide scale that only the merge knows.
+/// Each cache's links draw on its own index, so they are the same in any
+/// shard.
+pub struct PicPart {
+    pub surfels: Surfels,
+    pub hierarchy: Hierarchy,
+    pub cache_atlas_metres: f32,
+    pub caches: CachePlacement,
+    pub links_per_cache: usize,
+    /// SH coefficients per projected link; 0 for run-time projection.
+    pub coefficient_count: usize,
+    pub hierarchy_builder: u32,
+    pub enclosed_surfels: u32,
+    pub cache_bands: [u32; 2],
+    pub first_cache: usize,
+    /// Per own cache: its linked nodes, and with run-time projection the
+    /// unscaled (factor, 1 - cos, direction) of each.
+    pub nodes: Vec<Vec<u32>>,
+    pub runtime: Vec<Vec<(f32, f32, Vec3)>>,
+    /// Per own cache: the power of two its projected coefficients are
+    /// stored at, and their largest magnitude.
+    pub exponents: Vec<i32>,
+    pub largest: Vec<f32>,
+    /// Projected coefficients of the own caches, f16 at each cache's scale,
+    /// `links_per_cache * coefficient_count` per cache.
+    pub coefficients: Vec<u16>,
+}
+
+/// Shard payloads carry their own version beside the bake's.
+const PART_VERSION: u32 = 1;
+
+/// Link slots per cache: `links` rounded up to the kernel's lanes, and no
+/// more than a cut of the hierarchy can hold (one node per surfel).
+fn links_per_cache(links: usize, surfels: usize) -> usize {
+    links.min(surfels).div_ceil(LINK_ALIGNMENT) * LINK_ALIGNMENT
+}
+
+impl PicPart {
     pub fn build(
         context: &SceneContext,
         params: &PicParams,
+        shard: Shard,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
         let mut surfels = place_surfels(&context.scene, params.surfels as usize, params.relaxation);
@@ -120,37 +162,37 @@ impl PicBake {
             bvh: &context.bvh,
             epsilon: 4.0 * relight_trace::direct::ray_epsilon_for(&context.bvh),
         };
-        let links_per_cache = (params.links as usize).div_ceil(LINK_ALIGNMENT) * LINK_ALIGNMENT;
-        let cache_count = caches.positions.len();
+        let links_per_cache = links_per_cache(params.links as usize, surfels.len());
+        let own_caches = shard.range(caches.positions.len());
         let coefficient_count = match form {
             LinkForm::Projected { bands } => bands * bands,
             LinkForm::Runtime => 0,
         };
-        progress.start("linking caches", cache_count as u64);
-        // SH-projected coefficients go straight into their final place as
-        // f16 at a power-of-two scale of each cache's own; once the largest
-        // value of all is known they are rescaled in place to the common
-        // scale (exact for every value that stays a normal f16). Holding
-        // them all in f32 first doubled the high preset's bake memory.
+        progress.start("linking caches", own_caches.len() as u64);
+        // SH-projected coefficients go straight into their place as f16 at
+        // a power-of-two scale of each cache's own; the merge rescales them
+        // in place to the common scale once the largest value of all is
+        // known. Holding them all in f32 first doubled the high preset's
+        // bake memory.
         let chunk = links_per_cache * coefficient_count;
-        let mut link_coefficients = vec![0u16; cache_count * chunk];
+        let mut coefficients = vec![0u16; own_caches.len() * chunk];
         let coefficient_chunks: Vec<&mut [u16]> = if chunk > 0 {
-            link_coefficients.chunks_mut(chunk).collect()
+            coefficients.chunks_mut(chunk).collect()
         } else {
-            (0..cache_count).map(|_| Default::default()).collect()
+            (0..own_caches.len()).map(|_| Default::default()).collect()
         };
         // Per cache: nodes, (factor, 1 - cos, direction), and the scale
         // exponent and largest magnitude of its coefficients.
         type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, i32, f32);
         let per_cache: Vec<CacheLinks> = coefficient_chunks
             .into_par_iter()
-            .enumerate()
-            .map(|(cache, stored)| {
+            .zip(own_caches.clone())
+            .map(|(stored, cache)| {
                 let position = caches.positions[cache];
                 let normal = caches.normals[cache];
                 let nodes = senders.cut(cache as u64, position, normal, &settings);
                 let mut runtime = Vec::new();
-                let mut coefficients = vec![0.0f32; nodes.len() * coefficient_count];
+                let mut projected = vec![0.0f32; nodes.len() * coefficient_count];
                 for (slot, &node) in nodes.iter().enumerate() {
                     match form {
                         LinkForm::Runtime => {
@@ -170,14 +212,14 @@ impl PicBake {
                             node,
                             bands,
                             &settings,
-                            &mut coefficients
+                            &mut projected
                                 [slot * coefficient_count..(slot + 1) * coefficient_count],
                         ),
                     }
                 }
-                let largest = coefficients.iter().fold(0.0f32, |m, c| m.max(c.abs()));
+                let largest = projected.iter().fold(0.0f32, |m, c| m.max(c.abs()));
                 let exponent = scale_exponent(largest);
-                for (slot, value) in coefficients.iter().enumerate() {
+                for (slot, value) in projected.iter().enumerate() {
                     stored[slot] = half::f16::from_f32(value * 2f32.powi(exponent)).to_bits();
                 }
                 progress.advance(1);
@@ -185,10 +227,230 @@ impl PicBake {
             })
             .collect();
         progress.finish();
+        let mut part = PicPart {
+            surfels,
+            hierarchy,
+            cache_atlas_metres,
+            caches,
+            links_per_cache,
+            coefficient_count,
+            hierarchy_builder: (params.hierarchy == "kd") as u32,
+            enclosed_surfels: enclosed as u32,
+            cache_bands: {
+                let runtime = params.runtime();
+                [runtime.bands as u32, runtime.chroma_bands as u32]
+            },
+            first_cache: own_caches.start,
+            nodes: Vec::with_capacity(per_cache.len()),
+            runtime: Vec::with_capacity(per_cache.len()),
+            exponents: Vec::with_capacity(per_cache.len()),
+            largest: Vec::with_capacity(per_cache.len()),
+            coefficients,
+        };
+        for (nodes, runtime, exponent, largest) in per_cache {
+            part.nodes.push(nodes);
+            part.runtime.push(runtime);
+            part.exponents.push(exponent);
+            part.largest.push(largest);
+        }
+        Ok(part)
+    }
+
+    pub fn encode(&self) -> Vec<u8> {
+        let mut writer = PayloadWriter::with_capacity(self.coefficients.len() * 2 + 1024);
+        writer.u32(PART_VERSION);
+        write_setup(
+            &mut writer,
+            &self.surfels,
+            &self.hierarchy,
+            self.cache_atlas_metres,
+            &self.caches,
+        );
+        for value in [
+            self.links_per_cache as u32,
+            self.coefficient_count as u32,
+            self.hierarchy_builder,
+            self.enclosed_surfels,
+            self.cache_bands[0],
+            self.cache_bands[1],
+            self.first_cache as u32,
+        ] {
+            writer.u32(value);
+        }
+        let counts: Vec<u32> = self.nodes.iter().map(|nodes| nodes.len() as u32).collect();
+        writer.u32s(&counts);
+        writer.u32s(&self.nodes.concat());
+        let runtime: Vec<&(f32, f32, Vec3)> = self.runtime.iter().flatten().collect();
+        writer.f32s(&runtime.iter().map(|link| link.0).collect::<Vec<_>>());
+        writer.f32s(&runtime.iter().map(|link| link.1).collect::<Vec<_>>());
+        writer.vectors(&runtime.iter().map(|link| link.2).collect::<Vec<_>>());
+        let exponents: Vec<u32> = self.exponents.iter().map(|&e| e as u32).collect();
+        writer.u32s(&exponents);
+        writer.f32s(&self.largest);
+        writer.halves(&self.coefficients);
+        writer.finish()
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = PayloadReader::new(bytes, "pic");
+        let version = reader.u32()?;
+        if version != PART_VERSION {
+            return Err(reader.corrupt(&format!(
+                "PIC shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
+            )));
+        }
+        let (surfels, hierarchy, cache_atlas_metres, caches) = read_setup(&mut reader)?;
+        let mut sizes = [0u32; 7];
+        for size in &mut sizes {
+            *size = reader.u32()?;
+        }
+        let [links_per_cache, coefficient_count, hierarchy_builder, enclosed_surfels, luma, chroma, first_cache] =
+            sizes;
+        let counts = reader.u32s()?;
+        let flat_nodes = reader.u32s()?;
+        let factors = reader.f32s()?;
+        let cones = reader.f32s()?;
+        let directions = reader.vectors()?;
+        let exponents: Vec<i32> = reader.u32s()?.into_iter().map(|e| e as i32).collect();
+        let largest = reader.f32s()?;
+        let coefficients = reader.halves()?;
+        reader.end()?;
+        let own = counts.len();
+        if links_per_cache as usize > self::links_per_cache(usize::MAX, surfels.len()) {
+            return Err(reader.corrupt("more links per cache than surfels"));
+        }
+        let links: usize = counts.iter().map(|&count| count as usize).sum();
+        let runtime_form = coefficient_count == 0;
+        let consistent = flat_nodes.len() == links
+            && counts
+                .iter()
+                .all(|&count| count as usize <= links_per_cache as usize)
+            && exponents.len() == own
+            && largest.len() == own
+            && first_cache as usize + own <= caches.positions.len()
+            && coefficients.len() == own * links_per_cache as usize * coefficient_count as usize
+            && if runtime_form {
+                factors.len() == links && cones.len() == links && directions.len() == links
+            } else {
+                factors.is_empty() && cones.is_empty() && directions.is_empty()
+            };
+        if !consistent {
+            return Err(reader.corrupt("a shard's links disagree with its sizes"));
+        }
+        let mut nodes = Vec::with_capacity(own);
+        let mut runtime = Vec::with_capacity(own);
+        let mut at = 0;
+        for &count in &counts {
+            let range = at..at + count as usize;
+            nodes.push(flat_nodes[range.clone()].to_vec());
+            runtime.push(if runtime_form {
+                range
+                    .clone()
+                    .map(|link| (factors[link], cones[link], directions[link]))
+                    .collect()
+            } else {
+                Vec::new()
+            });
+            at = range.end;
+        }
+        Ok(Self {
+            surfels,
+            hierarchy,
+            cache_atlas_metres,
+            caches,
+            links_per_cache: links_per_cache as usize,
+            coefficient_count: coefficient_count as usize,
+            hierarchy_builder,
+            enclosed_surfels,
+            cache_bands: [luma, chroma],
+            first_cache: first_cache as usize,
+            nodes,
+            runtime,
+            exponents,
+            largest,
+            coefficients,
+        })
+    }
+
+    /// Whether `other` placed the same surfels, hierarchy and caches.
+    fn same_setup(&self, other: &Self) -> bool {
+        self.surfels == other.surfels
+            && self.hierarchy == other.hierarchy
+            && self.cache_atlas_metres.to_bits() == other.cache_atlas_metres.to_bits()
+            && self.caches == other.caches
+            && self.links_per_cache == other.links_per_cache
+            && self.coefficient_count == other.coefficient_count
+            && self.hierarchy_builder == other.hierarchy_builder
+            && self.enclosed_surfels == other.enclosed_surfels
+            && self.cache_bands == other.cache_bands
+    }
+}
+
+impl PicBake {
+    /// Bakes in one piece: the merge of the single shard 0/1.
+    pub fn build(
+        context: &SceneContext,
+        params: &PicParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let part = PicPart::build(context, params, Shard::WHOLE, progress)?;
+        Self::from_parts(std::iter::once(Ok(part)))
+    }
+
+    /// Joins parts given in shard order and brings every link to one scale.
+    pub fn from_parts(
+        parts: impl IntoIterator<Item = Result<PicPart, TechniqueError>>,
+    ) -> Result<Self, TechniqueError> {
+        let disagree = |message: &str| {
+            TechniqueError::Other(format!(
+                "PIC shards {message}: bake every shard with the same relight, scene and parameters"
+            ))
+        };
+        let mut parts = parts.into_iter();
+        let mut joined = parts.next().ok_or_else(|| disagree("are missing"))??;
+        if joined.first_cache != 0 {
+            return Err(disagree("do not start at the first cache"));
+        }
+        for part in parts {
+            let part = part?;
+            if !part.same_setup(&joined) {
+                return Err(disagree("disagree on their surfels or caches"));
+            }
+            if part.first_cache != joined.nodes.len() {
+                return Err(disagree("do not follow each other"));
+            }
+            joined.nodes.extend(part.nodes);
+            joined.runtime.extend(part.runtime);
+            joined.exponents.extend(part.exponents);
+            joined.largest.extend(part.largest);
+            joined.coefficients.extend_from_slice(&part.coefficients);
+        }
+        let PicPart {
+            surfels,
+            hierarchy,
+            cache_atlas_metres,
+            caches,
+            links_per_cache,
+            coefficient_count,
+            hierarchy_builder,
+            enclosed_surfels,
+            cache_bands,
+            nodes: per_cache_nodes,
+            runtime: per_cache_runtime,
+            exponents,
+            largest: per_cache_largest,
+            coefficients: mut link_coefficients,
+            ..
+        } = joined;
+        let cache_count = caches.positions.len();
+        if per_cache_nodes.len() != cache_count {
+            return Err(disagree("leave caches unlinked"));
+        }
         // One power-of-two scale keeps every factor a normal f16.
-        let largest = per_cache
+        let largest = per_cache_runtime
             .iter()
-            .flat_map(|(_, runtime, _, largest)| {
+            .zip(&per_cache_largest)
+            .flat_map(|(runtime, largest)| {
                 runtime
                     .iter()
                     .map(|(factor, _, _)| factor.abs())
@@ -197,11 +459,12 @@ impl PicBake {
             .fold(0.0f32, f32::max);
         let common_exponent = scale_exponent(largest);
         let factor_scale = 2f32.powi(common_exponent);
+        let chunk = links_per_cache * coefficient_count;
         if chunk > 0 {
             link_coefficients
                 .par_chunks_mut(chunk)
-                .zip(&per_cache)
-                .for_each(|(stored, (_, _, exponent, _))| {
+                .zip(&exponents)
+                .for_each(|(stored, exponent)| {
                     // The common scale is at most the cache's own.
                     let rescale = 2f32.powi(common_exponent - exponent);
                     for bits in stored {
@@ -211,6 +474,7 @@ impl PicBake {
                 });
         }
         let total = cache_count * links_per_cache;
+        let runtime_form = coefficient_count == 0;
         let mut bake = PicBake {
             surfels,
             hierarchy,
@@ -224,20 +488,21 @@ impl PicBake {
             link_directions: Vec::new(),
             link_coefficients,
             factor_scale,
-            hierarchy_builder: (params.hierarchy == "kd") as u32,
-            enclosed_surfels: enclosed as u32,
-            cache_bands: {
-                let runtime = params.runtime();
-                [runtime.bands as u32, runtime.chroma_bands as u32]
-            },
+            hierarchy_builder,
+            enclosed_surfels,
+            cache_bands,
         };
         let half = |value: f32| half::f16::from_f32(value).to_bits();
-        if form == LinkForm::Runtime {
+        if runtime_form {
             bake.link_factors = vec![0; total];
             bake.link_cones = vec![0; total];
             bake.link_directions = vec![[0; 2]; total];
         }
-        for (cache, (nodes, runtime, _, _)) in per_cache.into_iter().enumerate() {
+        for (cache, (nodes, runtime)) in per_cache_nodes
+            .into_iter()
+            .zip(per_cache_runtime)
+            .enumerate()
+        {
             let base = cache * links_per_cache;
             bake.link_nodes[base..base + nodes.len()].copy_from_slice(&nodes);
             for (slot, (factor, cone, direction)) in runtime.into_iter().enumerate() {
@@ -265,43 +530,13 @@ impl PicBake {
     pub fn encode(&self) -> Vec<u8> {
         let mut writer = PayloadWriter::with_capacity(self.link_bytes() + self.surfels.len() * 64);
         writer.u32(PAYLOAD_VERSION);
-        let surfels = &self.surfels;
-        writer.f32(surfels.area);
-        writer.vectors(&surfels.positions);
-        writer.vectors(&surfels.normals);
-        writer.u32s(&surfels.triangles);
-        let barycentrics: Vec<f32> = surfels
-            .barycentrics
-            .iter()
-            .flat_map(|b| b.to_array())
-            .collect();
-        writer.f32s(&barycentrics);
-        writer.vectors(&surfels.albedos);
-        writer.vectors(&surfels.emission);
-        let hierarchy = &self.hierarchy;
-        writer.u32(hierarchy.leaf_count);
-        let children: Vec<u32> = hierarchy.children.iter().flatten().copied().collect();
-        writer.u32s(&children);
-        writer.u32s(&hierarchy.first_leaf);
-        writer.u32s(&hierarchy.leaves);
-        writer.f32(self.cache_atlas_metres);
-        let caches = &self.caches;
-        writer.vectors(&caches.positions);
-        writer.vectors(&caches.normals);
-        writer.u32(caches.lightmap_count as u32);
-        for dim in caches.grid.dims {
-            writer.u32(dim);
-        }
-        writer.vectors(&[caches.grid.origin, caches.grid.step]);
-        writer.u32s(&caches.grid_cache);
-        for count in [
-            caches.moved,
-            caches.stuck,
-            caches.grid_moved,
-            caches.grid_culled,
-        ] {
-            writer.u32(count as u32);
-        }
+        write_setup(
+            &mut writer,
+            &self.surfels,
+            &self.hierarchy,
+            self.cache_atlas_metres,
+            &self.caches,
+        );
         writer.u32(self.links_per_cache as u32);
         writer.u32(self.projected_bands as u32);
         writer.u32s(&self.link_nodes);
@@ -326,104 +561,9 @@ impl PicBake {
                 "PIC payload version {version}, this relight reads {PAYLOAD_VERSION}: bake again"
             )));
         }
-        let area = reader.finite()?;
-        let positions = reader.vectors()?;
-        let normals = reader.vectors()?;
-        let triangles = reader.u32s()?;
-        let barycentrics: Vec<Vec2> = reader
-            .f32s()?
-            .chunks_exact(2)
-            .map(|pair| Vec2::new(pair[0], pair[1]))
-            .collect();
-        let albedos = reader.vectors()?;
-        let emission = reader.vectors()?;
-        let n = positions.len();
-        if [
-            normals.len(),
-            triangles.len(),
-            barycentrics.len(),
-            albedos.len(),
-            emission.len(),
-        ]
-        .iter()
-        .any(|&len| len != n)
-        {
-            return Err(reader.corrupt("surfel arrays differ in length"));
-        }
-        let surfels = Surfels {
-            positions,
-            normals,
-            triangles,
-            barycentrics,
-            albedos,
-            emission,
-            area,
-        };
-        let leaf_count = reader.u32()?;
-        let children: Vec<[u32; 2]> = reader
-            .u32s()?
-            .chunks_exact(2)
-            .map(|pair| [pair[0], pair[1]])
-            .collect();
-        let first_leaf = reader.u32s()?;
-        let leaves = reader.u32s()?;
-        let node_count = first_leaf.len();
-        let hierarchy_ok = leaf_count as usize == n
-            && leaves.len() == node_count
-            && node_count == (2 * n).saturating_sub(1)
-            && children.len() + n == node_count
-            && children
-                .iter()
-                .enumerate()
-                .all(|(k, pair)| pair.iter().all(|&child| (child as usize) < n + k))
-            && first_leaf
-                .iter()
-                .zip(&leaves)
-                .all(|(&first, &count)| count >= 1 && first as usize + count as usize <= n);
-        if !hierarchy_ok {
-            return Err(reader.corrupt("the surfel hierarchy is inconsistent"));
-        }
-        let hierarchy = Hierarchy {
-            leaf_count,
-            children,
-            first_leaf,
-            leaves,
-        };
-        let cache_atlas_metres = reader.finite()?;
-        let cache_positions = reader.vectors()?;
-        let cache_normals = reader.vectors()?;
-        let lightmap_count = reader.u32()? as usize;
-        let dims = [reader.u32()?, reader.u32()?, reader.u32()?];
-        let grid_vectors = reader.vectors()?;
-        let grid_cache = reader.u32s()?;
-        let counts = [reader.u32()?, reader.u32()?, reader.u32()?, reader.u32()?];
-        let cache_count = cache_positions.len();
-        let grid_points = dims.iter().map(|&d| d as u64).product::<u64>();
-        if cache_normals.len() != cache_count
-            || lightmap_count > cache_count
-            || grid_vectors.len() != 2
-            || grid_points != grid_cache.len() as u64
-            || grid_cache
-                .iter()
-                .any(|&cache| cache != u32::MAX && cache as usize >= cache_count)
-        {
-            return Err(reader.corrupt("the cache placement is inconsistent"));
-        }
-        let caches = CachePlacement {
-            positions: cache_positions,
-            normals: cache_normals,
-            lightmap_count,
-            grid: GridLayout {
-                dims,
-                origin: grid_vectors[0],
-                step: grid_vectors[1],
-            },
-            grid_cache,
-            moved: counts[0] as usize,
-            stuck: counts[1] as usize,
-            grid_moved: counts[2] as usize,
-            grid_culled: counts[3] as usize,
-        };
+        let (surfels, hierarchy, cache_atlas_metres, caches) = read_setup(&mut reader)?;
+        let node_count = hierarchy.first_leaf.len();
+        let cache_count = caches.positions.len();
         let links_per_cache = reader.u32()? as usize;
         let projected_bands = reader.u32()? as usize;
         let link_nodes = reader.u32s()?;
@@ -479,4 +619,154 @@ impl PicBake {
             cache_bands,
         })
     }
+}
+
+/// The surfels, their hierarchy and the caches: what every shard of a bake
+/// computes alike, written as the bake's payload begins.
+fn write_setup(
+    writer: &mut PayloadWriter,
+    surfels: &Surfels,
+    hierarchy: &Hierarchy,
+    cache_atlas_metres: f32,
+    caches: &CachePlacement,
+) {
+    writer.f32(surfels.area);
+    writer.vectors(&surfels.positions);
+    writer.vectors(&surfels.normals);
+    writer.u32s(&surfels.triangles);
+    let barycentrics: Vec<f32> = surfels
+        .barycentrics
+        .iter()
+        .flat_map(|b| b.to_array())
+        .collect();
+    writer.f32s(&barycentrics);
+    writer.vectors(&surfels.albedos);
+    writer.vectors(&surfels.emission);
+    writer.u32(hierarchy.leaf_count);
+    let children: Vec<u32> = hierarchy.children.iter().flatten().copied().collect();
+    writer.u32s(&children);
+    writer.u32s(&hierarchy.first_leaf);
+    writer.u32s(&hierarchy.leaves);
+    writer.f32(cache_atlas_metres);
+    writer.vectors(&caches.positions);
+    writer.vectors(&caches.normals);
+    writer.u32(caches.lightmap_count as u32);
+    for dim in caches.grid.dims {
+        writer.u32(dim);
+    }
+    writer.vectors(&[caches.grid.origin, caches.grid.step]);
+    writer.u32s(&caches.grid_cache);
+    for count in [
+        caches.moved,
+        caches.stuck,
+        caches.grid_moved,
+        caches.grid_culled,
+    ] {
+        writer.u32(count as u32);
+    }
+}
+
+/// Reads what [`write_setup`] wrote.
+fn read_setup(
+    reader: &mut PayloadReader,
+) -> Result<(Surfels, Hierarchy, f32, CachePlacement), TechniqueError> {
+    let area = reader.finite()?;
+    let positions = reader.vectors()?;
+    let normals = reader.vectors()?;
+    let triangles = reader.u32s()?;
+    let barycentrics: Vec<Vec2> = reader
+        .f32s()?
+        .chunks_exact(2)
+        .map(|pair| Vec2::new(pair[0], pair[1]))
+        .collect();
+    let albedos = reader.vectors()?;
+    let emission = reader.vectors()?;
+    let n = positions.len();
+    if [
+        normals.len(),
+        triangles.len(),
+        barycentrics.len(),
+        albedos.len(),
+        emission.len(),
+    ]
+    .iter()
+    .any(|&len| len != n)
+    {
+        return Err(reader.corrupt("surfel arrays differ in length"));
+    }
+    let surfels = Surfels {
+        positions,
+        normals,
+        triangles,
+        barycentrics,
+        albedos,
+        emission,
+        area,
+    };
+    let leaf_count = reader.u32()?;
+    let children: Vec<[u32; 2]> = reader
+        .u32s()?
+        .chunks_exact(2)
+        .map(|pair| [pair[0], pair[1]])
+        .collect();
+    let first_leaf = reader.u32s()?;
+    let leaves = reader.u32s()?;
+    let node_count = first_leaf.len();
+    let hierarchy_ok = leaf_count as usize == n
+        && leaves.len() == node_count
+        && node_count == (2 * n).saturating_sub(1)
+        && children.len() + n == node_count
+        && children
+            .iter()
+            .enumerate()
+            .all(|(k, pair)| pair.iter().all(|&child| (child as usize) < n + k))
+        && first_leaf
+            .iter()
+            .zip(&leaves)
+            .all(|(&first, &count)| count >= 1 && first as usize + count as usize <= n);
+    if !hierarchy_ok {
+        return Err(reader.corrupt("the surfel hierarchy is inconsistent"));
+    }
+    let hierarchy = Hierarchy {
+        leaf_count,
+        children,
+        first_leaf,
+        leaves,
+    };
+    let cache_atlas_metres = reader.finite()?;
+    let cache_positions = reader.vectors()?;
+    let cache_normals = reader.vectors()?;
+    let lightmap_count = reader.u32()? as usize;
+    let dims = [reader.u32()?, reader.u32()?, reader.u32()?];
+    let grid_vectors = reader.vectors()?;
+    let grid_cache = reader.u32s()?;
+    let counts = [reader.u32()?, reader.u32()?, reader.u32()?, reader.u32()?];
+    let cache_count = cache_positions.len();
+    let grid_points = dims.iter().map(|&d| d as u64).product::<u64>();
+    if cache_normals.len() != cache_count
+        || lightmap_count > cache_count
+        || grid_vectors.len() != 2
+        || grid_points != grid_cache.len() as u64
+        || grid_cache
+            .iter()
+            .any(|&cache| cache != u32::MAX && cache as usize >= cache_count)
+    {
+        return Err(reader.corrupt("the cache placement is inconsistent"));
+    }
+    let caches = CachePlacement {
+        positions: cache_positions,
+        normals: cache_normals,
+        lightmap_count,
+        grid: GridLayout {
+            dims,
+            origin: grid_vectors[0],
+            step: grid_vectors[1],
+        },
+        grid_cache,
+        moved: counts[0] as usize,
+        stuck: counts[1] as usize,
+        grid_moved: counts[2] as usize,
+        grid_culled: counts[3] as usize,
+    };
+    Ok((surfels, hierarchy, cache_atlas_metres, caches))
 }

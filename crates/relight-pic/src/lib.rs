@@ -162,12 +162,12 @@ pub mod links;
 mod runtime;
 pub mod surfels;
 
-pub use bake::PicBake;
+pub use bake::{PicBake, PicPart};
 pub use runtime::{Pic, RuntimeSettings};
 
 use relight_technique::{
     parse_params, with_scene_section, FinalGatherSettings, GatherReach, Progress, SceneContext,
-    SurfaceGather, Technique, TechniqueError, TechniqueKind,
+    Shard, SurfaceGather, Technique, TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -436,6 +436,24 @@ impl TechniqueKind for PicKind {
             bake.links_per_cache
         );
         Ok(bake.encode())
+    }
+    fn bake_shard(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let params = PicParams::from_scene(context, params)?;
+        Ok(PicPart::build(context, &params, shard, progress)?.encode())
+    }
+    fn merge_shards(
+        &self,
+        parts: Vec<Vec<u8>>,
+        _progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let decoded = parts.into_iter().map(|bytes| PicPart::decode(&bytes));
+        Ok(PicBake::from_parts(decoded)?.encode())
     }
     fn create(
         &self,

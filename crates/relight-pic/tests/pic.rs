@@ -206,6 +206,23 @@ fn bake_is_deterministic_across_thread_counts() {
     }
 }
 
+/// Four shards, baked on one and two threads, merge to the bytes of the
+/// whole bake, in both link forms (projected links are rescaled to one
+/// scale only the merge knows).
+#[test]
+fn shards_merge_to_the_whole_bake() {
+    let context = context("cornell-box-point");
+    for projected in ["false", "true"] {
+        let params = pairs(&[
+            ("surfels", "4000"),
+            ("links", "32"),
+            ("lightmap_caches", "2000"),
+            ("projected", projected),
+        ]);
+        relight_technique::robustness::check_shards_merge_to_whole(&PicKind, &context, &params, 4);
+    }
+}
+
 /// Corrupt payloads fail with a message, never a panic.
 #[test]
 fn corrupt_bakes_are_refused() {

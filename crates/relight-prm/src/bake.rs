@@ -9,7 +9,9 @@ use relight_core::sampling::{
 };
 use relight_core::{luminance, Rgb};
 use relight_scene::Scene;
-use relight_technique::{Progress, SceneContext, TechniqueError};
+use relight_technique::{
+    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+};
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
@@ -63,23 +65,51 @@ struct VirtualLight {
     flux: Rgb,
 }
 
-impl PrmBake {
+/// One shard of a PRM bake: the entry points and their clusters, which
+/// every shard computes alike, and the panes of the clusters
+/// `first_cluster..first_cluster + cluster_panes` with their entries'
+/// shares. Panes are the work that divides: each cluster's light paths
+/// draw on its entries' own indices, so a pane is the same in any shard.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PrmPart {
+    pub receiver_count: usize,
+    pub cluster_count: usize,
+    /// The `rank` parameter the merge compresses to.
+    pub requested_rank: usize,
+    pub entry_positions: Vec<Vec3>,
+    pub entry_normals: Vec<Vec3>,
+    pub entry_clusters: Vec<u32>,
+    pub first_cluster: usize,
+    /// Shares of each cluster's entries, cluster by cluster, entries in
+    /// ascending order within each.
+    pub shares: Vec<f32>,
+    /// This part's clusters' panes, pane-major like [`PrmBake::panes`].
+    pub panes: Vec<f16>,
+}
+
+/// Shard payloads carry their own version beside the bake's.
+const PART_VERSION: u32 = 1;
+
+impl PrmPart {
+    /// Bakes the panes of `shard`'s clusters.
     pub fn build(
         context: &SceneContext,
         params: &PrmParams,
+        shard: Shard,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
         let receivers = &context.atlas.receivers;
         let receiver_count = receivers.len();
-        let pane_bytes = estimate_pane_bytes(params.clusters as u64, receiver_count as u64);
+        let own_clusters = shard.range(params.clusters as usize);
+        let pane_bytes = estimate_pane_bytes(own_clusters.len() as u64, receiver_count as u64);
         // The bake also holds one f32 pane per worker thread.
         let peak = pane_bytes + rayon::current_num_threads() as u64 * receiver_count as u64 * 12;
         if peak > params.max_memory_mib * 1024 * 1024 {
             return Err(TechniqueError::Other(format!(
                 "PRM panes would need {:.0} MiB ({} clusters x {} texels x 6 bytes) over the limit of {} MiB: \
-                 lower --set clusters=N or --lightmap-resolution, or raise --set max_memory_mib=N",
+                 lower --set clusters=N or --lightmap-resolution, bake in shards (--shard I/N), or raise --set max_memory_mib=N",
                 peak as f64 / 1048576.0,
-                params.clusters,
+                own_clusters.len(),
                 receiver_count,
                 params.max_memory_mib
             )));
@@ -106,13 +136,13 @@ impl PrmBake {
             members[cluster as usize].push(entry as u32);
         }
         let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
-        progress.start("prm panes", params.clusters as u64);
-        let mut panes = vec![f16::ZERO; params.clusters as usize * receiver_count * 3];
+        progress.start("prm panes", own_clusters.len() as u64);
+        let mut panes = vec![f16::ZERO; own_clusters.len() * receiver_count * 3];
         // Each entry's share of its cluster's weight: the total luminance
         // of its own pane over the cluster pane's.
         let shares_per_cluster: Vec<Vec<f32>> = panes
             .par_chunks_mut(receiver_count * 3)
-            .zip(members.par_iter())
+            .zip(members[own_clusters.clone()].par_iter())
             .map(|(pane_out, cluster_members)| {
                 let mut pane = vec![Rgb::ZERO; receiver_count];
                 let mut own_totals: Vec<f64> = Vec::with_capacity(cluster_members.len());
@@ -154,21 +184,169 @@ impl PrmBake {
             })
             .collect();
         progress.finish();
-        let mut entry_shares = vec![0.0f32; entries.positions.len()];
-        for (cluster_members, shares) in members.iter().zip(&shares_per_cluster) {
-            for (&entry, &share) in cluster_members.iter().zip(shares) {
-                entry_shares[entry as usize] = share;
+        Ok(Self {
+            receiver_count,
+            cluster_count: params.clusters as usize,
+            requested_rank: params.rank as usize,
+            entry_positions: entries.positions,
+            entry_normals: entries.normals,
+            entry_clusters,
+            first_cluster: own_clusters.start,
+            shares: shares_per_cluster.into_iter().flatten().collect(),
+            panes,
+        })
+    }
+
+    /// Clusters whose panes this part holds.
+    pub fn cluster_panes(&self) -> usize {
+        self.panes.len() / (self.receiver_count * 3).max(1)
+    }
+
+    pub fn encode(&self) -> Vec<u8> {
+        let mut writer = PayloadWriter::with_capacity(self.panes.len() * 2 + 64);
+        writer.u32(PART_VERSION);
+        writer.u32(self.receiver_count as u32);
+        writer.u32(self.cluster_count as u32);
+        writer.u32(self.requested_rank as u32);
+        writer.vectors(&self.entry_positions);
+        writer.vectors(&self.entry_normals);
+        writer.u32s(&self.entry_clusters);
+        writer.u32(self.first_cluster as u32);
+        writer.f32s(&self.shares);
+        let bits: &[u16] = bytemuck::cast_slice(&self.panes);
+        writer.halves(bits);
+        writer.finish()
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = PayloadReader::new(bytes, "prm");
+        let version = reader.u32()?;
+        if version != PART_VERSION {
+            return Err(reader.corrupt(&format!(
+                "PRM shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
+            )));
+        }
+        let receiver_count = reader.u32()? as usize;
+        let cluster_count = reader.u32()? as usize;
+        let requested_rank = reader.u32()? as usize;
+        let entry_positions = reader.vectors()?;
+        let entry_normals = reader.vectors()?;
+        let entry_clusters = reader.u32s()?;
+        let first_cluster = reader.u32()? as usize;
+        let shares = reader.f32s()?;
+        let panes: Vec<f16> = reader.halves()?.into_iter().map(f16::from_bits).collect();
+        reader.end()?;
+        let part = Self {
+            receiver_count,
+            cluster_count,
+            requested_rank,
+            entry_positions,
+            entry_normals,
+            entry_clusters,
+            first_cluster,
+            shares,
+            panes,
+        };
+        let entries = part.entry_positions.len();
+        if part.entry_normals.len() != entries
+            || part.entry_clusters.len() != entries
+            || part
+                .entry_clusters
+                .iter()
+                .any(|&cluster| cluster as usize >= cluster_count)
+            || part.receiver_count == 0
+            || !part.panes.len().is_multiple_of(receiver_count * 3)
+            || part.first_cluster + part.cluster_panes() > cluster_count
+        {
+            return Err(reader.corrupt("a shard's sizes disagree"));
+        }
+        Ok(part)
+    }
+
+    /// Whether `other` was baked from the same entry points for the same
+    /// lightmap and compression.
+    fn same_setup(&self, other: &Self) -> bool {
+        self.receiver_count == other.receiver_count
+            && self.cluster_count == other.cluster_count
+            && self.requested_rank == other.requested_rank
+            && self.entry_positions == other.entry_positions
+            && self.entry_normals == other.entry_normals
+            && self.entry_clusters == other.entry_clusters
+    }
+}
+
+impl PrmBake {
+    /// Bakes in one piece: the merge of the single shard 0/1.
+    pub fn build(
+        context: &SceneContext,
+        params: &PrmParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let part = PrmPart::build(context, params, Shard::WHOLE, progress)?;
+        Self::from_parts(std::iter::once(Ok(part)), progress)
+    }
+
+    /// Joins parts given in shard order, then compresses the panes.
+    pub fn from_parts(
+        parts: impl IntoIterator<Item = Result<PrmPart, TechniqueError>>,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let mut parts = parts.into_iter();
+        let mut joined = parts
+            .next()
+            .ok_or_else(|| TechniqueError::Other("PRM merge: no shards given".into()))??;
+        let disagree = |message: &str| {
+            TechniqueError::Other(format!(
+                "PRM shards {message}: bake every shard with the same relight, scene and parameters"
+            ))
+        };
+        if joined.first_cluster != 0 {
+            return Err(disagree("do not start at the first cluster"));
+        }
+        for part in parts {
+            let part = part?;
+            if !part.same_setup(&joined) {
+                return Err(disagree("disagree on their entry points"));
             }
+            if part.first_cluster != joined.first_cluster + joined.cluster_panes() {
+                return Err(disagree("do not follow each other"));
+            }
+            joined.panes.extend_from_slice(&part.panes);
+            joined.shares.extend_from_slice(&part.shares);
+        }
+        let PrmPart {
+            receiver_count,
+            cluster_count,
+            requested_rank,
+            entry_positions,
+            entry_normals,
+            entry_clusters,
+            shares,
+            mut panes,
+            ..
+        } = joined;
+        let expected = cluster_count
+            .checked_mul(receiver_count)
+            .and_then(|values| values.checked_mul(3));
+        if expected != Some(panes.len()) || shares.len() != entry_clusters.len() {
+            return Err(disagree("leave clusters without panes"));
+        }
+        // Shares come cluster by cluster, each cluster's entries ascending.
+        let mut entry_shares = vec![0.0f32; entry_clusters.len()];
+        let mut order: Vec<u32> = (0..entry_clusters.len() as u32).collect();
+        order.sort_by_key(|&entry| entry_clusters[entry as usize]);
+        for (&entry, &share) in order.iter().zip(&shares) {
+            entry_shares[entry as usize] = share;
         }
 
         let (rank, coefficients, captured_energy) =
-            if params.rank > 0 && (params.rank as usize) < params.clusters as usize {
+            if requested_rank > 0 && requested_rank < cluster_count {
                 progress.start("prm compression", 1);
                 let components = relight_core::pca::principal_components(
                     &panes,
-                    params.clusters as usize,
+                    cluster_count,
                     receiver_count * 3,
-                    params.rank as usize,
+                    requested_rank,
                 )
                 .map_err(|error| TechniqueError::Other(format!("PRM pane compression: {error}")))?;
                 progress.finish();
@@ -183,11 +361,11 @@ impl PrmBake {
             };
         Ok(Self {
             receiver_count,
-            entry_positions: entries.positions,
-            entry_normals: entries.normals,
+            entry_positions,
+            entry_normals,
             entry_clusters,
             entry_shares,
-            cluster_count: params.clusters as usize,
+            cluster_count,
             rank,
             coefficients,
             captured_energy,

@@ -128,11 +128,11 @@
 mod bake;
 mod runtime;
 
-pub use bake::{estimate_pane_bytes, PrmBake};
+pub use bake::{estimate_pane_bytes, PrmBake, PrmPart};
 pub use runtime::{Prm, Selection};
 
 use relight_technique::{
-    parse_params, FinalGatherSettings, GatherReach, Progress, SceneContext, Technique,
+    parse_params, FinalGatherSettings, GatherReach, Progress, SceneContext, Shard, Technique,
     TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
@@ -250,6 +250,26 @@ impl TechniqueKind for PrmKind {
         let params = parse_params("prm", &PrmParams::default(), params)?;
         params.validate()?;
         Ok(PrmBake::build(context, &params, progress)?.encode())
+    }
+    fn bake_shard(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let params = parse_params("prm", &PrmParams::default(), params)?;
+        params.validate()?;
+        Ok(PrmPart::build(context, &params, shard, progress)?.encode())
+    }
+    fn merge_shards(
+        &self,
+        parts: Vec<Vec<u8>>,
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        // Each shard's bytes are freed once its panes are copied.
+        let decoded = parts.into_iter().map(|bytes| PrmPart::decode(&bytes));
+        Ok(PrmBake::from_parts(decoded, progress)?.encode())
     }
     fn create(
         &self,

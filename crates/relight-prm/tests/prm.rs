@@ -197,6 +197,18 @@ fn bake_is_identical_on_one_and_two_threads() {
     assert!(bake_with(1) == bake_with(2));
 }
 
+/// Four shards, baked on one and two threads, merge to the bytes of the
+/// whole bake: the panes are joined before their compression.
+#[test]
+fn shards_merge_to_the_whole_bake() {
+    let context = context("cornell-box-point", 32);
+    let params: Vec<(String, String)> = [("entries", "512"), ("clusters", "32"), ("rank", "8")]
+        .iter()
+        .map(|(key, value)| (key.to_string(), value.to_string()))
+        .collect();
+    relight_technique::robustness::check_shards_merge_to_whole(&PrmKind, &context, &params, 4);
+}
+
 #[test]
 fn corrupt_payloads_are_errors_not_panics() {
     let context = context("cornell-box-point", 32);

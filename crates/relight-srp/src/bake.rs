@@ -9,7 +9,9 @@ use half::f16;
 use rayon::prelude::*;
 use relight_core::sampling::{stratified_square, uniform_sphere, SampleStream};
 use relight_core::sh;
-use relight_technique::{PayloadReader, PayloadWriter, Progress, SceneContext, TechniqueError};
+use relight_technique::{
+    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+};
 use relight_trace::Ray;
 use std::collections::HashMap;
 
@@ -238,10 +240,125 @@ pub fn sample_directions(count: u32, seed: u64) -> Vec<Vec3> {
         .collect()
 }
 
-impl SrpBake {
+/// The clusters of one kind of transport that a shard compressed.
+#[derive(Default)]
+pub struct PartClusters {
+    /// Clusters of the whole bake, before any is halved.
+    pub total: usize,
+    /// This shard's clusters are `first..first + own` of them.
+    pub first: usize,
+    pub own: usize,
+    pub rank: usize,
+    /// Members and compressed output of each, halves in spatial order.
+    compressed: Vec<(Vec<u32>, ClusterOutput)>,
+}
+
+impl PartClusters {
+    fn write(&self, writer: &mut PayloadWriter) {
+        for value in [self.total, self.first, self.own, self.rank] {
+            writer.u32(value as u32);
+        }
+        writer.u32(self.compressed.len() as u32);
+        for (members, output) in &self.compressed {
+            writer.u32s(members);
+            writer.u32s(&output.probes);
+            writer.halves(&output.projection);
+            writer.halves(&output.reconstruction);
+            writer.f64(output.energy);
+            writer.f64(output.captured);
+            writer.u64(output.valid_samples);
+        }
+    }
+
+    fn read(reader: &mut PayloadReader) -> Result<Self, TechniqueError> {
+        let mut sizes = [0usize; 4];
+        for size in &mut sizes {
+            *size = reader.u32()? as usize;
+        }
+        let [total, first, own, rank] = sizes;
+        // Each cluster takes at least 36 bytes.
+        let count = reader.u32()? as usize;
+        let compressed = (0..count)
+            .map(|_| {
+                let members = reader.u32s()?;
+                let output = ClusterOutput {
+                    probes: reader.u32s()?,
+                    projection: reader.halves()?,
+                    reconstruction: reader.halves()?,
+                    energy: reader.f64()?,
+                    captured: reader.f64()?,
+                    valid_samples: reader.u64()?,
+                };
+                Ok((members, output))
+            })
+            .collect::<Result<Vec<_>, TechniqueError>>()?;
+        if first + own > total {
+            return Err(reader.corrupt("a shard's clusters lie beyond the bake's"));
+        }
+        Ok(Self {
+            total,
+            first,
+            own,
+            rank,
+            compressed,
+        })
+    }
+
+    /// Appends `next`, the following shard's clusters.
+    fn join(&mut self, next: PartClusters) -> Result<(), &'static str> {
+        if next.total != self.total || next.rank != self.rank {
+            return Err("disagree on their clusters");
+        }
+        if next.first != self.first + self.own {
+            return Err("do not follow each other");
+        }
+        self.own += next.own;
+        self.compressed.extend(next.compressed);
+        Ok(())
+    }
+
+    fn assemble(self) -> Result<(ClusterSet, CompressionTotals), &'static str> {
+        if self.first != 0 || self.own != self.total {
+            return Err("leave clusters unbaked");
+        }
+        let (members, outputs): (Vec<Vec<u32>>, Vec<ClusterOutput>) =
+            self.compressed.into_iter().unzip();
+        Ok(ClusterSet::assemble(self.rank, &members, outputs))
+    }
+}
+
+/// One shard of an SRP bake: the probes, which every shard places alike,
+/// and the shard's part of the three kinds of work: receiver clusters'
+/// irradiance transport, glossy clusters' radiance transport, and probes'
+/// sample tables. Each receiver's and probe's rays draw on its own index,
+/// so the work is the same in any shard.
+pub struct SrpPart {
+    pub receiver_count: usize,
+    pub bands: usize,
+    pub radius: f32,
+    pub probes: Vec<Vec3>,
+    /// The placement's figures; the transport's are summed at the merge.
+    pub stats: BakeStats,
+    /// Transport samples per receiver.
+    pub samples: u32,
+    pub sample_directions: Vec<Vec3>,
+    pub irradiance: PartClusters,
+    /// Radiance transport bands; 0 = none.
+    pub radiance_bands: usize,
+    pub radiance: PartClusters,
+    pub first_probe: usize,
+    /// Sample tables of probes `first_probe..`, before compaction.
+    pub sample_targets: Vec<u32>,
+}
+
+/// Shard payloads carry their own version beside the bake's.
+const PART_VERSION: u32 = 1;
+
+impl SrpPart {
     pub fn build(
         context: &SceneContext,
         params: &SrpParams,
+        shard: Shard,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
         let receivers = &context.atlas.receivers;
@@ -307,7 +424,12 @@ impl SrpBake {
         let nearby = probes::nearby_probes(context, &probes, radius, params.max_nearby as usize);
         stats.mean_nearby =
             nearby.iter().map(Vec::len).sum::<usize>() as f32 / receivers.len() as f32;
-        let clusters = transport::aabb_clusters(&receivers.positions, params.cluster_size as usize);
+        let mut clusters =
+            transport::aabb_clusters(&receivers.positions, params.cluster_size as usize);
+        let total = clusters.len();
+        let own = shard.range(total);
+        clusters.truncate(own.end);
+        let clusters = clusters.split_off(own.start);
         let settings = TransportSettings {
             bands,
             samples: params.samples,
@@ -316,7 +438,10 @@ impl SrpBake {
             seed: params.seed,
         };
         let rank = params.pca_vectors as usize;
-        progress.start("srp transport", receivers.len() as u64);
+        progress.start(
+            "srp transport",
+            clusters.iter().map(Vec::len).sum::<usize>() as u64,
+        );
         // One cluster per work item: its transport matrix exists only while
         // it is compressed, so memory grows with the threads, not the scene.
         let split = ClusterSplit {
@@ -326,7 +451,7 @@ impl SrpBake {
             rank,
             min_energy: params.cluster_energy as f64,
         };
-        let (clusters, compressed): (Vec<Vec<u32>>, Vec<ClusterOutput>) = clusters
+        let compressed: Vec<(Vec<u32>, ClusterOutput)> = clusters
             .into_par_iter()
             .map_init(
                 || TransportScratch::new(bands),
@@ -341,39 +466,209 @@ impl SrpBake {
                 },
             )
             .flatten_iter()
-            .unzip();
+            .collect();
         progress.finish();
+        let irradiance = PartClusters {
+            total,
+            first: own.start,
+            own: own.len(),
+            rank,
+            compressed,
+        };
+        let radiance = if params.radiance_order > 0 {
+            radiance_transport(
+                context, &probes, &nearby, &settings, params, shard, progress,
+            )
+        } else {
+            PartClusters::default()
+        };
 
-        let (cluster_set, totals) = ClusterSet::assemble(rank, &clusters, compressed);
-        let mut bake = Self {
+        let own_probes = shard.range(probes.len());
+        progress.start("srp probe sample tables", own_probes.len() as u64);
+        let sample_directions = sample_directions(params.probe_samples, params.seed);
+        let sample_targets = sample_tables(
+            context,
+            &probes[own_probes.clone()],
+            &sample_directions,
+            progress,
+        );
+        progress.finish();
+        Ok(Self {
             receiver_count: receivers.len(),
             bands,
             radius,
             probes,
-            sample_directions: Vec::new(),
-            sample_targets: Vec::new(),
-            visible_receivers: Vec::new(),
-            clusters: cluster_set,
             stats,
-            radiance: RadianceTransport::default(),
+            samples: params.samples,
+            sample_directions,
+            irradiance,
+            radiance_bands: if params.radiance_order > 0 {
+                params.radiance_order as usize + 1
+            } else {
+                0
+            },
+            radiance,
+            first_probe: own_probes.start,
+            sample_targets,
+        })
+    }
+
+    pub fn encode(&self) -> Vec<u8> {
+        let mut writer = PayloadWriter::default();
+        writer.u32(PART_VERSION);
+        writer.u32(self.receiver_count as u32);
+        writer.u32(self.bands as u32);
+        writer.f32(self.radius);
+        writer.vectors(&self.probes);
+        let stats = &self.stats;
+        for value in [
+            stats.placed_probes,
+            stats.added_for_coverage,
+            stats.min_probes,
+            stats.receivers_short_of_probes,
+            stats.probes_inside_geometry,
+            stats.open_receivers,
+        ] {
+            writer.u32(value);
+        }
+        writer.f32(stats.mean_nearby);
+        writer.u32(self.samples);
+        writer.vectors(&self.sample_directions);
+        self.irradiance.write(&mut writer);
+        writer.u32(self.radiance_bands as u32);
+        self.radiance.write(&mut writer);
+        writer.u32(self.first_probe as u32);
+        writer.u32s(&self.sample_targets);
+        writer.finish()
+    }
+
+    pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
+        let mut reader = PayloadReader::new(bytes, "srp");
+        let version = reader.u32()?;
+        if version != PART_VERSION {
+            return Err(reader.corrupt(&format!(
+                "SRP shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
+            )));
+        }
+        let receiver_count = reader.u32()? as usize;
+        let bands = reader.u32()? as usize;
+        let radius = reader.finite()?;
+        let probes = reader.vectors()?;
+        let mut counts = [0u32; 6];
+        for count in &mut counts {
+            *count = reader.u32()?;
+        }
+        let stats = BakeStats {
+            placed_probes: counts[0],
+            added_for_coverage: counts[1],
+            min_probes: counts[2],
+            receivers_short_of_probes: counts[3],
+            probes_inside_geometry: counts[4],
+            open_receivers: counts[5],
+            mean_nearby: reader.finite()?,
+            ..Default::default()
         };
-        bake.stats.captured_energy = if totals.energy > 0.0 {
+        let part = Self {
+            receiver_count,
+            bands,
+            radius,
+            probes,
+            stats,
+            samples: reader.u32()?,
+            sample_directions: reader.vectors()?,
+            irradiance: PartClusters::read(&mut reader)?,
+            radiance_bands: reader.u32()? as usize,
+            radiance: PartClusters::read(&mut reader)?,
+            first_probe: reader.u32()? as usize,
+            sample_targets: reader.u32s()?,
+        };
+        reader.end()?;
+        Ok(part)
+    }
+
+    /// Whether `other` placed the same probes for the same lightmap.
+    fn same_setup(&self, other: &Self) -> bool {
+        self.receiver_count == other.receiver_count
+            && self.bands == other.bands
+            && self.radius.to_bits() == other.radius.to_bits()
+            && self.probes == other.probes
+            && self.stats == other.stats
+            && self.samples == other.samples
+            && self.sample_directions == other.sample_directions
+            && self.radiance_bands == other.radiance_bands
+    }
+}
+
+impl SrpBake {
+    /// Bakes in one piece: the merge of the single shard 0/1.
+    pub fn build(
+        context: &SceneContext,
+        params: &SrpParams,
+        progress: &dyn Progress,
+    ) -> Result<Self, TechniqueError> {
+        let part = SrpPart::build(context, params, Shard::WHOLE, progress)?;
+        Self::from_parts(std::iter::once(Ok(part)))
+    }
+
+    /// Joins parts given in shard order.
+    pub fn from_parts(
+        parts: impl IntoIterator<Item = Result<SrpPart, TechniqueError>>,
+    ) -> Result<Self, TechniqueError> {
+        let disagree = |message: &str| {
+            TechniqueError::Other(format!(
+                "SRP shards {message}: bake every shard with the same relight, scene and parameters"
+            ))
+        };
+        let mut parts = parts.into_iter();
+        let mut joined = parts.next().ok_or_else(|| disagree("are missing"))??;
+        if joined.first_probe != 0 {
+            return Err(disagree("do not start at the first probe"));
+        }
+        for part in parts {
+            let part = part?;
+            if !part.same_setup(&joined) {
+                return Err(disagree("disagree on their probes"));
+            }
+            if part.first_probe * joined.sample_directions.len() != joined.sample_targets.len() {
+                return Err(disagree("do not follow each other"));
+            }
+            joined.sample_targets.extend(part.sample_targets);
+            joined.irradiance.join(part.irradiance).map_err(disagree)?;
+            joined.radiance.join(part.radiance).map_err(disagree)?;
+        }
+        let SrpPart {
+            receiver_count,
+            bands,
+            radius,
+            probes,
+            mut stats,
+            samples,
+            sample_directions,
+            irradiance,
+            radiance_bands,
+            radiance,
+            sample_targets: targets,
+            ..
+        } = joined;
+        if targets.len() != probes.len() * sample_directions.len() {
+            return Err(disagree("leave probes without sample tables"));
+        }
+        let (cluster_set, totals) = irradiance.assemble().map_err(disagree)?;
+        stats.captured_energy = if totals.energy > 0.0 {
             (totals.captured / totals.energy) as f32
         } else {
             1.0
         };
-        bake.stats.valid_sample_fraction =
-            totals.valid_samples as f32 / (receivers.len() as f32 * params.samples as f32);
-
-        if params.radiance_order > 0 {
-            bake.radiance =
-                radiance_transport(context, &bake.probes, &nearby, &settings, params, progress);
-        }
-
-        progress.start("srp probe sample tables", bake.probes.len() as u64);
-        bake.sample_directions = sample_directions(params.probe_samples, params.seed);
-        let targets = sample_tables(context, &bake.probes, &bake.sample_directions, progress);
-        progress.finish();
+        stats.valid_sample_fraction =
+            totals.valid_samples as f32 / (receiver_count as f32 * samples as f32);
+        let radiance = RadianceTransport {
+            bands: radiance_bands,
+            clusters: if radiance_bands > 0 {
+                radiance.assemble().map_err(disagree)?.0
+            } else {
+                ClusterSet::default()
+            },
+        };
         // Compact the hit receivers so the direct light is evaluated only
         // where probes look.
         let mut compact = HashMap::new();
@@ -383,7 +678,7 @@ impl SrpBake {
         for (index, receiver) in hit.iter().enumerate() {
             compact.insert(*receiver, index as u32);
         }
-        bake.sample_targets = targets
+        let sample_targets = targets
             .into_iter()
             .map(|target| {
                 if target < BACK_FACE {
@@ -393,7 +688,19 @@ impl SrpBake {
                 }
             })
             .collect();
-        bake.visible_receivers = hit;
+        let bake = Self {
+            receiver_count,
+            bands,
+            radius,
+            probes,
+            sample_directions,
+            sample_targets,
+            visible_receivers: hit,
+            clusters: cluster_set,
+            stats,
+            radiance,
+        };
+        bake.validate().map_err(|message| disagree(&message))?;
         Ok(bake)
     }
 
@@ -569,8 +876,9 @@ fn radiance_transport(
     nearby: &[Vec<u32>],
     settings: &TransportSettings,
     params: &SrpParams,
+    shard: Shard,
     progress: &dyn Progress,
-) -> RadianceTransport {
+) -> PartClusters {
     let receivers = &context.atlas.receivers;
     let glossy: Vec<u32> = (0..receivers.len() as u32)
         .filter(|&receiver| {
@@ -594,16 +902,21 @@ fn radiance_transport(
     // outputs receivers keep the matrices (and the bake's memory and SVD
     // time) the size of the irradiance's.
     let cluster_receivers = (params.cluster_size as usize / outputs).max(1);
-    let clusters: Vec<Vec<u32>> = transport::aabb_clusters(&positions, cluster_receivers)
-        .into_iter()
+    let all_clusters = transport::aabb_clusters(&positions, cluster_receivers);
+    let own = shard.range(all_clusters.len());
+    let clusters: Vec<Vec<u32>> = all_clusters[own.clone()]
+        .iter()
         .map(|members| {
             members
-                .into_iter()
-                .map(|local| glossy[local as usize])
+                .iter()
+                .map(|&local| glossy[local as usize])
                 .collect()
         })
         .collect();
-    progress.start("srp radiance transport", glossy.len() as u64);
+    progress.start(
+        "srp radiance transport",
+        clusters.iter().map(Vec::len).sum::<usize>() as u64,
+    );
     let compressed: Vec<ClusterOutput> = clusters
         .par_iter()
         .map_init(
@@ -641,9 +954,12 @@ fn radiance_transport(
         )
         .collect();
     progress.finish();
-    RadianceTransport {
-        bands,
-        clusters: ClusterSet::assemble(rank, &clusters, compressed).0,
+    PartClusters {
+        total: all_clusters.len(),
+        first: own.start,
+        own: own.len(),
+        rank,
+        compressed: clusters.into_iter().zip(compressed).collect(),
     }
 }
 

@@ -169,14 +169,14 @@ mod runtime;
 pub mod transport;
 
 pub use bake::{
-    cluster_transport, sample_directions, BakeStats, ClusterSet, RadianceTransport, SrpBake,
-    BACK_FACE, ESCAPED,
+    cluster_transport, sample_directions, BakeStats, ClusterSet, PartClusters, RadianceTransport,
+    SrpBake, SrpPart, BACK_FACE, ESCAPED,
 };
 pub use runtime::{RuntimeSettings, Srp};
 
 use relight_technique::{
     parse_params, with_scene_section, FinalGatherSettings, GatherReach, Progress, SceneContext,
-    Technique, TechniqueError, TechniqueKind,
+    Shard, Technique, TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -385,6 +385,24 @@ impl TechniqueKind for SrpKind {
             bake.stats.captured_energy * 100.0
         );
         Ok(bake.encode())
+    }
+    fn bake_shard(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+        progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let params = SrpParams::from_scene(context, params)?;
+        Ok(SrpPart::build(context, &params, shard, progress)?.encode())
+    }
+    fn merge_shards(
+        &self,
+        parts: Vec<Vec<u8>>,
+        _progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        let decoded = parts.into_iter().map(|bytes| SrpPart::decode(&bytes));
+        Ok(SrpBake::from_parts(decoded)?.encode())
     }
     fn create(
         &self,

@@ -348,6 +348,21 @@ fn bake_is_deterministic_across_thread_counts() {
     assert_eq!(one, several);
 }
 
+/// Four shards, baked on one and two threads, merge to the bytes of the
+/// whole bake, radiance transport and sample tables included.
+#[test]
+fn shards_merge_to_the_whole_bake() {
+    let context = glossy_cornell();
+    let params = pairs(&[
+        ("samples", "32"),
+        ("order", "3"),
+        ("probe_samples", "256"),
+        ("radiance_order", "2"),
+        ("radiance_samples", "32"),
+    ]);
+    relight_technique::robustness::check_shards_merge_to_whole(&SrpKind, &context, &params, 4);
+}
+
 /// Corrupt payloads fail with a message, never a panic.
 #[test]
 fn corrupt_bakes_are_refused() {

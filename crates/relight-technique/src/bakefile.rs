@@ -1,18 +1,21 @@
 //! The bake file container shared by every technique: a magic number, a
-//! format version, the technique and its payload version, a fingerprint of
-//! the scene it was baked for, the payload, and a CRC-32 over all of it.
+//! format version, the technique and its payload version, fingerprints of
+//! the scene and the bake parameters it was baked for, which shard of a
+//! sharded bake it holds (none for a whole bake), the payload, and a CRC-32
+//! over all of it.
 //!
 //! Files are written to a temporary sibling and renamed into place, so an
 //! interrupted bake never destroys a good one.
 
-use crate::TechniqueError;
+use crate::{Shard, TechniqueError};
 use relight_scene::atlas::Atlas;
 use relight_scene::Scene;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const BAKE_MAGIC: [u8; 8] = *b"RELIGHT\x1a";
-pub const BAKE_FORMAT_VERSION: u32 = 1;
+/// 2 added the parameters' fingerprint and the shard.
+pub const BAKE_FORMAT_VERSION: u32 = 2;
 
 /// What a bake file says about itself.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -20,6 +23,12 @@ pub struct BakeHeader {
     pub technique: String,
     pub payload_version: u32,
     pub scene_fingerprint: u64,
+    /// [`crate::parameters_fingerprint`] of the bake parameters: shards of
+    /// one bake must agree on it.
+    pub parameters_fingerprint: u64,
+    /// Which part of a sharded bake the payload holds; `None` for a whole
+    /// bake, which is what techniques load.
+    pub shard: Option<Shard>,
 }
 
 /// FNV-1a over the geometry, materials, atlas layout and receiver
@@ -76,6 +85,12 @@ fn encode(header: &BakeHeader, payload: &[u8]) -> Vec<u8> {
     bytes.extend_from_slice(header.technique.as_bytes());
     bytes.extend_from_slice(&header.payload_version.to_le_bytes());
     bytes.extend_from_slice(&header.scene_fingerprint.to_le_bytes());
+    bytes.extend_from_slice(&header.parameters_fingerprint.to_le_bytes());
+    let (index, count) = header
+        .shard
+        .map_or((0, 0), |shard| (shard.index, shard.count));
+    bytes.extend_from_slice(&index.to_le_bytes());
+    bytes.extend_from_slice(&count.to_le_bytes());
     bytes.extend_from_slice(&(payload.len() as u64).to_le_bytes());
     bytes.extend_from_slice(payload);
     let checksum = crc32fast::hash(&bytes);
@@ -158,6 +173,13 @@ fn decode(path: &Path, bytes: &[u8]) -> Result<(BakeHeader, Vec<u8>), TechniqueE
         .map_err(|_| invalid("technique name is not UTF-8"))?;
     let payload_version = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
     let scene_fingerprint = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
+    let parameters_fingerprint = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
+    let index = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
+    let count = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
+    let shard = match count {
+        0 if index == 0 => None,
+        _ => Some(Shard::new(index, count).map_err(|message| invalid(&message))?),
+    };
     let payload_length = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
     let payload_length =
         usize::try_from(payload_length).map_err(|_| invalid("payload length too large"))?;
@@ -167,6 +189,8 @@ fn decode(path: &Path, bytes: &[u8]) -> Result<(BakeHeader, Vec<u8>), TechniqueE
             technique,
             payload_version,
             scene_fingerprint,
+            parameters_fingerprint,
+            shard,
         },
         payload,
     ))
@@ -181,6 +205,8 @@ mod tests {
             technique: "pic".into(),
             payload_version: 3,
             scene_fingerprint: 0xDEAD_BEEF,
+            parameters_fingerprint: 0x1234,
+            shard: Some(Shard { index: 2, count: 4 }),
         }
     }
 

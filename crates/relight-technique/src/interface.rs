@@ -174,6 +174,34 @@ pub trait TechniqueKind: Sync {
         })
     }
 
+    /// Bakes one shard of the work (see [`crate::Shard`]): a payload only
+    /// [`TechniqueKind::merge_shards`] reads. Techniques whose bake does
+    /// not divide refuse.
+    fn bake_shard(
+        &self,
+        _context: &SceneContext,
+        _params: &[(String, String)],
+        _shard: crate::Shard,
+        _progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        Err(TechniqueError::NotShardable {
+            technique: self.name(),
+        })
+    }
+
+    /// Joins every shard's payload, shard 0 first, into the bake payload
+    /// [`TechniqueKind::bake`] would have made. Takes the payloads by value
+    /// so each can be freed once read.
+    fn merge_shards(
+        &self,
+        _parts: Vec<Vec<u8>>,
+        _progress: &dyn Progress,
+    ) -> Result<Vec<u8>, TechniqueError> {
+        Err(TechniqueError::NotShardable {
+            technique: self.name(),
+        })
+    }
+
     /// Creates the technique, from a bake payload when it needs one.
     fn create(
         &self,
@@ -192,6 +220,8 @@ pub enum TechniqueError {
     NoBake { technique: &'static str },
     #[error("technique '{technique}' needs a bake: run `relight bake SCENE --technique {technique} -o FILE` and pass --bake FILE")]
     BakeRequired { technique: &'static str },
+    #[error("technique '{technique}' bakes in one piece: drop --shard")]
+    NotShardable { technique: &'static str },
     #[error(transparent)]
     Params(#[from] crate::ParamError),
     #[error("{path}: {message}")]

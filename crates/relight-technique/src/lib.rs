@@ -21,6 +21,7 @@ mod interface;
 mod params;
 mod payload;
 pub mod robustness;
+mod shard;
 
 pub use bakefile::{
     read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,
@@ -35,3 +36,4 @@ pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
+pub use shard::{parameters_fingerprint, read_shard_set, Shard, ShardSet};

@@ -23,6 +23,12 @@ impl PayloadWriter {
     pub fn f32(&mut self, value: f32) {
         self.bytes.extend_from_slice(&value.to_le_bytes());
     }
+    pub fn u64(&mut self, value: u64) {
+        self.bytes.extend_from_slice(&value.to_le_bytes());
+    }
+    pub fn f64(&mut self, value: f64) {
+        self.bytes.extend_from_slice(&value.to_le_bytes());
+    }
     /// A length-prefixed list of u32.
     pub fn u32s(&mut self, values: &[u32]) {
         self.u32(values.len() as u32);
@@ -105,6 +111,22 @@ impl<'a> PayloadReader<'a> {
         Ok(f32::from_le_bytes(
             self.take(4)?.try_into().expect("4 bytes"),
         ))
+    }
+
+    pub fn u64(&mut self) -> Result<u64, TechniqueError> {
+        Ok(u64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+    }
+
+    /// A finite f64.
+    pub fn f64(&mut self) -> Result<f64, TechniqueError> {
+        let value = f64::from_le_bytes(self.take(8)?.try_into().expect("8 bytes"));
+        if value.is_finite() {
+            Ok(value)
+        } else {
+            Err(self.corrupt("a number is not finite"))
+        }
     }
 
     /// A finite f32.

@@ -53,3 +53,74 @@ pub fn check_damaged_payloads(
     }
     (accepted, refused)
 }
+
+/// Bakes `params` whole on every thread, then in `count` shards, shard `i`
+/// on `1 + i % 2` threads, and merges them: panics unless the merge gives
+/// the whole bake's bytes, and unless merging the shards out of order or
+/// with one missing is an error, and unless damaged shards (bit flips,
+/// truncations) merge or are refused without a panic. Returns the whole
+/// bake.
+pub fn check_shards_merge_to_whole(
+    kind: &dyn TechniqueKind,
+    context: &SceneContext,
+    params: &[(String, String)],
+    count: u32,
+) -> Vec<u8> {
+    let on_threads = |threads: usize, work: &(dyn Fn() -> Vec<u8> + Sync)| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("a thread pool")
+            .install(work)
+    };
+    let whole = kind
+        .bake(context, params, &NoProgress)
+        .expect("the whole bake succeeds");
+    let shards: Vec<Vec<u8>> = (0..count)
+        .map(|index| {
+            let shard = crate::Shard::new(index, count).expect("a valid shard");
+            on_threads(1 + index as usize % 2, &|| {
+                kind.bake_shard(context, params, shard, &NoProgress)
+                    .expect("the shard bakes")
+            })
+        })
+        .collect();
+    let merged = kind
+        .merge_shards(shards.clone(), &NoProgress)
+        .expect("the shards merge");
+    assert!(
+        merged == whole,
+        "{}: {count} shards merged ({} bytes) differ from the whole bake ({} bytes)",
+        kind.name(),
+        merged.len(),
+        whole.len()
+    );
+    if count > 1 {
+        let mut reversed = shards.clone();
+        reversed.reverse();
+        assert!(kind.merge_shards(reversed, &NoProgress).is_err());
+        assert!(kind
+            .merge_shards(shards[..shards.len() - 1].to_vec(), &NoProgress)
+            .is_err());
+    }
+    let mut rng = Pcg32::new(count as u64, 0x5AAD);
+    for mutation in 0..60 {
+        let mut damaged = shards.clone();
+        let victim = &mut damaged[rng.next_u32() as usize % count as usize];
+        if mutation % 6 == 0 {
+            victim.truncate(rng.next_u32() as usize % victim.len().max(1));
+        } else {
+            let at = rng.next_u32() as usize % victim.len();
+            victim[at] ^= 1 << (rng.next_u32() % 8);
+        }
+        let outcome = catch_unwind(AssertUnwindSafe(|| {
+            let _ = kind.merge_shards(damaged, &NoProgress);
+        }));
+        assert!(
+            outcome.is_ok(),
+            "{}: damaged shard {mutation} panicked the merge",
+            kind.name()
+        );
+    }
+    whole
+}
