@@ -246,20 +246,7 @@ pub fn rays(scene_path: &Path, rays: usize, repeats: usize, quiet: bool) -> Resu
         eprintln!("loading {}", scene_path.display());
     }
     let scene = relight_scene::load_scene(scene_path)?;
-    // Shadow rays go toward the first point light, or above the scene centre.
-    let (lo, hi) = scene.mesh.bounds();
-    let light_position = scene
-        .lights
-        .iter()
-        .find_map(|light| match light {
-            Light::Point { position, .. } | Light::Spot { position, .. } => Some(*position),
-            Light::Directional { .. } => None,
-        })
-        .unwrap_or(Vec3::new(
-            (lo.x + hi.x) * 0.5,
-            lo.y + (hi.y - lo.y) * 0.9,
-            (lo.z + hi.z) * 0.5,
-        ));
+    let light_position = shadow_ray_target(&scene);
     let report = relight_trace::raybench::run(
         &scene.mesh.positions,
         &scene.mesh.triangles,
@@ -275,4 +262,55 @@ pub fn rays(scene_path: &Path, rays: usize, repeats: usize, quiet: bool) -> Resu
     );
     say!("{report}");
     Ok(())
+}
+
+/// Where `relight bench-rays`' shadow rays go: the first point or spot
+/// light, or above the scene's centre.
+pub fn shadow_ray_target(scene: &relight_scene::Scene) -> Vec3 {
+    let (lo, hi) = scene.mesh.bounds();
+    scene
+        .lights
+        .iter()
+        .find_map(|light| match light {
+            Light::Point { position, .. } | Light::Spot { position, .. } => Some(*position),
+            Light::Directional { .. } => None,
+        })
+        .unwrap_or(Vec3::new(
+            (lo.x + hi.x) * 0.5,
+            lo.y + (hi.y - lo.y) * 0.9,
+            (lo.z + hi.z) * 0.5,
+        ))
+}
+
+/// How long the rays a bake traced alone take on `context`'s scene, at
+/// the rates `relight bench-rays` measures there now (2^18 rays of each
+/// kind, median of three passes): closest-hit rays at its diffuse
+/// closest-hit rate, occlusion rays at its diffuse occlusion rate.
+/// Returns (seconds, the rates line for the report).
+pub fn ray_bound(
+    context: &relight_technique::SceneContext,
+    rays: relight_trace::counters::RayCount,
+) -> (f64, String) {
+    let mesh = &context.scene.mesh;
+    let rates = relight_trace::raybench::rates_on(
+        &context.bvh,
+        &mesh.positions,
+        &mesh.triangles,
+        shadow_ray_target(&context.scene),
+        1 << 18,
+        3,
+        1,
+    );
+    let seconds = rays.closest_hit as f64 / (rates.diffuse_closest_hit * 1e6).max(1e-9)
+        + rays.occlusion as f64 / (rates.diffuse_occlusion * 1e6).max(1e-9);
+    let line = format!(
+        "rays            {:.1} M closest-hit + {:.1} M occlusion: {:.1} s at this scene's {:.2} / {:.2} Mrays/s (relight bench-rays' diffuse rays, {} threads)",
+        rays.closest_hit as f64 / 1e6,
+        rays.occlusion as f64 / 1e6,
+        seconds,
+        rates.diffuse_closest_hit,
+        rates.diffuse_occlusion,
+        rayon::current_num_threads()
+    );
+    (seconds, line)
 }

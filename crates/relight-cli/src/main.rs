@@ -1,5 +1,6 @@
 //! The `relight` command-line tool: inspect scenes, render them with a GI
-//! technique or the path tracer, bake, benchmark and compare techniques.
+//! technique or the path tracer, bake (whole, or in shards that `merge`
+//! joins), benchmark and compare techniques.
 //!
 //! Data flow per command: scene file -> [`SceneContext`] (BVH, atlas) ->
 //! technique (bake, create, update from the lights) -> images and numbers.
@@ -24,6 +25,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use progress::Bars;
 use relight_scene::atlas::TexelDensity;
+use relight_technique::Progress as _;
 use relight_technique::{ContextSettings, Frame, SceneContext};
 use relight_trace::direct::DirectSettings;
 use relight_trace::path::PathSettings;
@@ -521,38 +523,61 @@ fn run(cli: Cli) -> Result<()> {
                 }
             }
             let start = std::time::Instant::now();
+            let rays_before = relight_trace::counters::rays_traced();
             let bars = Bars::new(quiet);
             let payload = match shard {
                 Some(shard) => kind.bake_shard(&context, &pairs, shard, &bars)?,
                 None => kind.bake(&context, &pairs, &bars)?,
             };
+            bars.start("write", 1);
             relight_technique::write_bake_atomic(&output, &header, &payload)?;
+            bars.finish();
+            let elapsed = start.elapsed();
             say!(
                 "baked {}{} in {:.2} s: {} ({} bytes)",
                 kind.name(),
                 shard
                     .map(|shard| format!(" shard {shard}"))
                     .unwrap_or_default(),
-                start.elapsed().as_secs_f64(),
+                elapsed.as_secs_f64(),
                 output.display(),
                 payload.len()
             );
+            for line in bars.stage_report(elapsed) {
+                say!("{line}");
+            }
+            let rays = relight_trace::counters::rays_traced().since(rays_before);
+            if rays.total() > 0 {
+                let (bound, line) = bench::ray_bound(&context, rays);
+                say!("{line}");
+                say!(
+                    "ray bound       the bake took {:.2}x the time its rays alone need",
+                    elapsed.as_secs_f64() / bound.max(1e-9)
+                );
+            }
             Ok(())
         }
         Command::Merge { shards, output } => {
             let start = std::time::Instant::now();
             let set = relight_technique::read_shard_set(&shards)?;
             let kind = techniques::find(&set.header.technique)?;
-            let payload = kind.merge_shards(set.payloads, &Bars::new(quiet))?;
+            let bars = Bars::new(quiet);
+            let payload = kind.merge_shards(set.payloads, &bars)?;
+            bars.start("write", 1);
             relight_technique::write_bake_atomic(&output, &set.header, &payload)?;
+            bars.finish();
+            let elapsed = start.elapsed();
             say!(
                 "merged {} shards of {} in {:.2} s: {} ({} bytes)",
                 shards.len(),
                 kind.name(),
-                start.elapsed().as_secs_f64(),
+                elapsed.as_secs_f64(),
                 output.display(),
                 payload.len()
             );
+            for line in bars.stage_report(elapsed) {
+                say!("{line}");
+            }
             Ok(())
         }
         Command::Bench {

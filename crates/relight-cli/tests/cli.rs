@@ -341,7 +341,10 @@ fn four_shards_merge_to_the_whole_bake() {
             )
         };
         let whole = path(&format!("{technique}.bake"));
-        bake(&[], &whole);
+        let report = bake(&[], &whole);
+        // The report splits the time by stage and compares it with the rays.
+        assert!(report.contains("outside the stages"), "{report}");
+        assert!(report.contains("its rays alone need"), "{report}");
         let parts: Vec<PathBuf> = (0..4)
             .map(|index| path(&format!("{technique}-part-{index}.bake")))
             .collect();
@@ -426,4 +429,117 @@ fn four_shards_merge_to_the_whole_bake() {
             .arg(path("x.png")),
     );
     assert!(refused.contains("relight merge"), "{refused}");
+}
+
+/// The example job files under examples/cluster run the shards and the
+/// merge they promise: the Slurm submission with a stand-in `sbatch` that
+/// runs each job at once (array tasks one by one), and the Kubernetes
+/// Indexed Job's commands with each completion index. Both give the whole
+/// bake's bytes; a rerun of the Slurm array keeps every finished shard.
+#[test]
+fn cluster_job_files_bake_and_merge() {
+    let folder = tempfile::tempdir().unwrap();
+    let root = folder.path();
+    let examples = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/cluster");
+    let bin = root.join("bin");
+    std::fs::create_dir(&bin).unwrap();
+    std::os::unix::fs::symlink(env!("CARGO_BIN_EXE_relight"), bin.join("relight")).unwrap();
+    let sbatch = bin.join("sbatch");
+    std::fs::write(
+        &sbatch,
+        "#!/usr/bin/env bash\n\
+         # Runs a job at once instead of queueing it.\n\
+         array=''; script=''\n\
+         for arg in \"$@\"; do case $arg in --array=*) array=${arg#--array=};; --*) ;; *) script=$arg;; esac; done\n\
+         if [ -n \"$array\" ]; then\n\
+           for i in $(seq \"${array%-*}\" \"${array#*-}\"); do SLURM_ARRAY_TASK_ID=$i bash \"$script\" >> \"$OUT/log\" || exit 1; done\n\
+         else bash \"$script\" >> \"$OUT/log\" || exit 1; fi\n\
+         echo 42\n",
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&sbatch, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let path = format!(
+        "{}:{}",
+        bin.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let corridor = scene("corridor");
+    let whole = root.join("whole.bake");
+    run_ok(
+        relight()
+            .args(["bake", "-q", "--technique", "prm"])
+            .arg(&corridor)
+            .arg("-o")
+            .arg(&whole),
+    );
+    let whole = std::fs::read(&whole).unwrap();
+
+    let slurm_out = root.join("slurm");
+    std::fs::create_dir(&slurm_out).unwrap();
+    let submit = || {
+        run_ok(
+            Command::new("bash")
+                .arg(examples.join("slurm/submit.sh"))
+                .env("PATH", &path)
+                .env("SCENE", &corridor)
+                .env("TECHNIQUE", "prm")
+                .env("SHARDS", "4")
+                .env("OUT", &slurm_out),
+        )
+    };
+    let said = submit();
+    assert!(said.contains("merge 42"), "{said}");
+    assert!(
+        std::fs::read(slurm_out.join("scene.bake")).unwrap() == whole,
+        "Slurm merge"
+    );
+    submit();
+    let log = std::fs::read_to_string(slurm_out.join("log")).unwrap();
+    assert_eq!(log.matches("already baked").count(), 4, "{log}");
+
+    // The Kubernetes Jobs' shell commands, with /data on the temporary folder.
+    let command_of = |file: &str| {
+        let text = std::fs::read_to_string(examples.join("kubernetes").join(file)).unwrap();
+        let mut lines = text
+            .lines()
+            .skip_while(|line| !line.trim_start().starts_with("args:"));
+        lines.next();
+        let first = lines
+            .next()
+            .expect("an args entry")
+            .trim()
+            .trim_start_matches("- ");
+        let command = if first == ">-" {
+            lines
+                .take_while(|line| !line.trim_start().starts_with("resources:"))
+                .map(str::trim)
+                .collect::<Vec<_>>()
+                .join(" ")
+        } else {
+            first.to_string()
+        };
+        command.replace("/data", &root.display().to_string())
+    };
+    std::fs::create_dir(root.join("bakes")).unwrap();
+    for index in 0..4 {
+        run_ok(
+            Command::new("sh")
+                .args(["-c", &command_of("bake-shards.yaml")])
+                .env("PATH", &path)
+                .env("JOB_COMPLETION_INDEX", index.to_string())
+                .env("SHARDS", "4")
+                .env("TECHNIQUE", "prm")
+                .env("SCENE", &corridor),
+        );
+    }
+    run_ok(
+        Command::new("sh")
+            .args(["-c", &command_of("merge.yaml")])
+            .env("PATH", &path),
+    );
+    assert!(
+        std::fs::read(root.join("bakes/scene.bake")).unwrap() == whole,
+        "Kubernetes merge"
+    );
 }

@@ -103,6 +103,7 @@ impl PicPart {
         shard: Shard,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
+        progress.start("pic surfels", 1);
         let mut surfels = place_surfels(&context.scene, params.surfels as usize, params.relaxation);
         // Surfels enclosed by geometry (floor under a box, faces pressed
         // together) neither see nor are seen: in a cluster they would only
@@ -114,6 +115,7 @@ impl PicPart {
             .collect();
         let enclosed = keep.iter().filter(|k| !**k).count();
         surfels.retain(&keep);
+        progress.finish();
         if surfels.is_empty() {
             return Err(TechniqueError::Other(
                 "the scene has no surface area for surfels: PIC needs triangles".into(),
@@ -136,11 +138,13 @@ impl PicPart {
         };
         let (hierarchy, order) = hierarchy::finalise(surfels.len(), &merges);
         surfels.permute(&order);
+        progress.start("pic cache placement", 1);
         let (own_atlas, cache_atlas_metres) =
             cache_atlas(context, params.lightmap_caches as usize)?;
         let atlas = own_atlas.as_ref().unwrap_or(&context.atlas);
         let grid_dims = (params.grid.iter().all(|&d| d > 0)).then_some(params.grid);
         let caches = place_caches(context, atlas, params.grid_cells as usize, grid_dims);
+        progress.finish();
         let form = if params.projected {
             LinkForm::Projected {
                 bands: params.bands as usize,

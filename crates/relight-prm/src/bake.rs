@@ -116,6 +116,7 @@ impl PrmPart {
         }
         let scene = &context.scene;
         let total_area = scene.mesh.total_area() as f32;
+        progress.start("prm entry points", 1);
         let entries = sample_entries(scene, params.entries as usize)?;
         let (lo, hi) = scene.mesh.bounds();
         let diagonal = (hi - lo).length().max(1e-6);
@@ -127,6 +128,7 @@ impl PrmPart {
             diagonal,
             params.seed,
         );
+        progress.finish();
         let area_per_entry = total_area / params.entries as f32;
         let disc_radius_squared = area_per_entry / std::f32::consts::PI;
 

@@ -421,11 +421,13 @@ impl SrpPart {
             .count() as u32;
         progress.finish();
 
+        progress.start("srp nearby probes", 1);
         let nearby = probes::nearby_probes(context, &probes, radius, params.max_nearby as usize);
         stats.mean_nearby =
             nearby.iter().map(Vec::len).sum::<usize>() as f32 / receivers.len() as f32;
         let mut clusters =
             transport::aabb_clusters(&receivers.positions, params.cluster_size as usize);
+        progress.finish();
         let total = clusters.len();
         let own = shard.range(total);
         clusters.truncate(own.end);

@@ -9,6 +9,9 @@
 //! technique take it from the shared direct-light service, so techniques
 //! differ only in indirect light.
 //!
+//! A bake may also be made in [`Shard`]s, separately and anywhere, which
+//! [`TechniqueKind::merge_shards`] joins into the bytes of a whole bake.
+//!
 //! The built-in kinds are `direct` (no indirect light, the lower bound) and
 //! `reference` (path-traced per-receiver indirect light, the ground truth).
 

@@ -11,6 +11,7 @@
 //! per-receiver indirect irradiance.
 
 pub mod bvh;
+pub mod counters;
 pub mod direct;
 pub mod path;
 pub mod raybench;

@@ -269,6 +269,27 @@ fn fraction(count: usize, total: usize) -> f64 {
     count as f64 / total.max(1) as f64
 }
 
+/// The rates of `bvh` on `ray_count` rays of each set (median of
+/// `repeats` passes after a warm-up): what `relight bench-rays` reports,
+/// without its builds.
+pub fn rates_on(
+    bvh: &Bvh,
+    positions: &[Vec3],
+    triangles: &[[u32; 3]],
+    light_position: Vec3,
+    ray_count: usize,
+    repeats: usize,
+    seed: u64,
+) -> RayRates {
+    let rays = RaySets::generate(positions, triangles, light_position, ray_count, seed);
+    let tracers: [&dyn BatchTracer; 1] = [bvh];
+    measure(&tracers, &rays, repeats)
+        .into_iter()
+        .next()
+        .expect("the BVH was traced")
+        .rates
+}
+
 /// Builds and traces; see the module documentation for the ray sets.
 pub fn run(
     positions: &[Vec3],

@@ -160,12 +160,14 @@ impl Bvh {
     /// Closest hit with 0 < t < `ray.t_max`; front and back faces both hit.
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
+        crate::counters::count_closest_hit();
         traverse::intersect(&self.nodes, &self.packets, ray)
     }
 
     /// Whether anything is hit with 0 < t < `ray.t_max`.
     #[inline]
     pub fn occluded(&self, ray: &Ray) -> bool {
+        crate::counters::count_occlusion();
         traverse::occluded(&self.nodes, &self.packets, ray, &mut { NO_OCCLUDER })
     }
 
@@ -176,6 +178,7 @@ impl Bvh {
     /// The answer is the same for any `cache` value.
     #[inline]
     pub fn occluded_cached(&self, ray: &Ray, cache: &mut u32) -> bool {
+        crate::counters::count_occlusion();
         traverse::occluded(&self.nodes, &self.packets, ray, cache)
     }
 
