@@ -1,10 +1,9 @@
-//! Rays traced through [`crate::Bvh`], counted without contention (one
-//! cache line per rayon worker), so a bake can compare its time with the
-//! time its rays alone need at the scene's measured ray rate.
+//! Rays traced through [`crate::Bvh`], counted per thread without locked
+//! instructions, so a bake can compare its time with the time its rays
+//! alone need at the scene's measured ray rate.
 
 use std::sync::atomic::{AtomicU64, Ordering};
-
-const SLOTS: usize = 64;
+use std::sync::{Arc, Mutex};
 
 /// Rays traced since the process started, by kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -27,41 +26,48 @@ impl RayCount {
     }
 }
 
-#[repr(align(64))]
+/// One thread's counts: only that thread writes them (plain loads and
+/// stores, no locked instruction), any thread may read them.
+#[derive(Default)]
 struct Slot {
     closest_hit: AtomicU64,
     occlusion: AtomicU64,
 }
 
-static COUNTS: [Slot; SLOTS] = [const {
-    Slot {
-        closest_hit: AtomicU64::new(0),
-        occlusion: AtomicU64::new(0),
-    }
-}; SLOTS];
+/// Every thread's slot, kept after the thread ends so no count is lost.
+static SLOTS: Mutex<Vec<Arc<Slot>>> = Mutex::new(Vec::new());
 
-/// The calling thread's slot: rayon workers have their own (threads of
-/// different pools may share one, which costs only contention); other
-/// threads share the last.
+thread_local! {
+    static OWN: Arc<Slot> = {
+        let slot = Arc::new(Slot::default());
+        SLOTS
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .push(slot.clone());
+        slot
+    };
+}
+
 #[inline]
-fn slot() -> &'static Slot {
-    let index = rayon::current_thread_index().map_or(SLOTS - 1, |index| index % (SLOTS - 1));
-    &COUNTS[index]
+fn bump(counter: &AtomicU64) {
+    counter.store(counter.load(Ordering::Relaxed) + 1, Ordering::Relaxed);
 }
 
 #[inline]
 pub(crate) fn count_closest_hit() {
-    slot().closest_hit.fetch_add(1, Ordering::Relaxed);
+    OWN.with(|slot| bump(&slot.closest_hit));
 }
 
 #[inline]
 pub(crate) fn count_occlusion() {
-    slot().occlusion.fetch_add(1, Ordering::Relaxed);
+    OWN.with(|slot| bump(&slot.occlusion));
 }
 
 /// Rays traced by every thread so far.
 pub fn rays_traced() -> RayCount {
-    COUNTS
+    SLOTS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
         .iter()
         .fold(RayCount::default(), |sum, slot| RayCount {
             closest_hit: sum.closest_hit + slot.closest_hit.load(Ordering::Relaxed),
