@@ -22,6 +22,35 @@ pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
     clusters * receivers * 3 * 2
 }
 
+/// Basis panes the compression keeps; 0 = none.
+fn compressed_rank(params: &PrmParams) -> u64 {
+    if params.rank > 0 && params.rank < params.clusters {
+        params.rank as u64
+    } else {
+        0
+    }
+}
+
+/// The most the panes take during `shard`'s bake over `receivers` texels:
+/// its f16 panes with one f32 pane per worker thread while they are
+/// gathered, and for a whole bake then every pane with the compression's
+/// f16 basis (the peak at the defaults: Sponza's 256 + 128 panes are 870
+/// of the 949 MB the bake's process peaks at, the rest being the scene,
+/// its BVH and lightmap). A merge peaks like a whole bake.
+pub fn estimate_peak_bytes(params: &PrmParams, shard: Shard, receivers: u64) -> u64 {
+    let own = shard.range(params.clusters as usize).len() as u64;
+    let gathering =
+        estimate_pane_bytes(own, receivers) + rayon::current_num_threads() as u64 * receivers * 12;
+    if shard == Shard::WHOLE {
+        gathering.max(estimate_pane_bytes(
+            params.clusters as u64 + compressed_rank(params),
+            receivers,
+        ))
+    } else {
+        gathering
+    }
+}
+
 /// Everything the run time needs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PrmBake {
@@ -101,16 +130,15 @@ impl PrmPart {
         let receivers = &context.atlas.receivers;
         let receiver_count = receivers.len();
         let own_clusters = shard.range(params.clusters as usize);
-        let pane_bytes = estimate_pane_bytes(own_clusters.len() as u64, receiver_count as u64);
-        // The bake also holds one f32 pane per worker thread.
-        let peak = pane_bytes + rayon::current_num_threads() as u64 * receiver_count as u64 * 12;
+        let peak = estimate_peak_bytes(params, shard, receiver_count as u64);
         if peak > params.max_memory_mib * 1024 * 1024 {
             return Err(TechniqueError::Other(format!(
-                "PRM panes would need {:.0} MiB ({} clusters x {} texels x 6 bytes) over the limit of {} MiB: \
-                 lower --set clusters=N or --lightmap-resolution, bake in shards (--shard I/N), or raise --set max_memory_mib=N",
+                "PRM panes would need {:.0} MiB ({} clusters x {} texels x 6 bytes, with the compression's basis of {} panes) over the limit of {} MiB: \
+                 lower --set clusters=N, --set rank=N or --lightmap-resolution, bake in shards (--shard I/N), or raise --set max_memory_mib=N",
                 peak as f64 / 1048576.0,
                 own_clusters.len(),
                 receiver_count,
+                if shard == Shard::WHOLE { compressed_rank(params) } else { 0 },
                 params.max_memory_mib
             )));
         }

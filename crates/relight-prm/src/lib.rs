@@ -28,7 +28,7 @@
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
-//! | `max_memory_mib` | 2048 | refuse bakes whose panes would need more |
+//! | `max_memory_mib` | 2048 | refuse bakes whose panes (with the compression's basis, for a whole bake) would need more; a shard counts its own panes |
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the entry points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
@@ -128,7 +128,7 @@
 mod bake;
 mod runtime;
 
-pub use bake::{estimate_pane_bytes, PrmBake, PrmPart};
+pub use bake::{estimate_pane_bytes, estimate_peak_bytes, PrmBake, PrmPart};
 pub use runtime::{Prm, Selection};
 
 use relight_technique::{

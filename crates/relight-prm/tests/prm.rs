@@ -5,7 +5,8 @@ use relight_prm::{PrmBake, PrmKind, PrmParams};
 use relight_render::metrics::{error_norms, relative_noise};
 use relight_scene::atlas::TexelDensity;
 use relight_technique::{
-    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, TechniqueKind,
+    reference_receiver_irradiance, ContextSettings, Frame, NoProgress, SceneContext, Shard,
+    TechniqueKind,
 };
 use relight_trace::path::PathSettings;
 use std::path::Path;
@@ -260,6 +261,38 @@ fn oversized_bakes_are_refused_with_advice() {
         error.contains("clusters") && error.contains("max_memory_mib"),
         "{error}"
     );
+}
+
+/// The memory guard counts the compression's basis, where a whole bake
+/// peaks, and a shard only its own panes: a limit between the two refuses
+/// the whole bake and lets a quarter of it through.
+#[test]
+fn the_memory_guard_counts_the_compression_and_shards() {
+    let receivers = 10_000u64;
+    let params = PrmParams::default();
+    let whole = relight_prm::estimate_peak_bytes(&params, Shard::WHOLE, receivers);
+    assert_eq!(whole, (256 + 128) * receivers * 6);
+    let quarter = relight_prm::estimate_peak_bytes(&params, Shard::new(1, 4).unwrap(), receivers);
+    assert!(quarter < whole / 2, "{quarter} of {whole}");
+
+    let context = context("cornell-box-point", 64);
+    let receivers = context.atlas.receivers.len() as u64;
+    let limit_mib =
+        (relight_prm::estimate_peak_bytes(&params, Shard::WHOLE, receivers) - 1) / 1048576;
+    let params = [("max_memory_mib".to_string(), limit_mib.to_string())];
+    let shard = Shard::new(1, 4).unwrap();
+    assert!(
+        relight_prm::estimate_peak_bytes(&PrmParams::default(), shard, receivers)
+            < limit_mib * 1048576
+    );
+    let error = PrmKind
+        .bake(&context, &params, &NoProgress)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("--shard I/N"), "{error}");
+    assert!(PrmKind
+        .bake_shard(&context, &params, shard, &NoProgress)
+        .is_ok());
 }
 
 #[test]
