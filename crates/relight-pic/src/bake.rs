@@ -9,7 +9,8 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::octahedral_encode;
 use relight_technique::{
-    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+    join_parts, shards_disagree, BakePart, PayloadReader, PayloadWriter, Progress, SceneContext,
+    Shard, TechniqueError,
 };
 
 const PAYLOAD_VERSION: u32 = 2;
@@ -297,12 +298,11 @@ impl PicPart {
 
     pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
         let mut reader = PayloadReader::new(bytes, "pic");
-        let version = reader.u32()?;
-        if version != PART_VERSION {
-            return Err(reader.corrupt(&format!(
-                "PIC shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
-            )));
-        }
+        reader.version(
+            PART_VERSION,
+            "PIC shard",
+            "bake the shards with this relight",
+        )?;
         let (surfels, hierarchy, cache_atlas_metres, caches) = read_setup(&mut reader)?;
         let mut sizes = [0u32; 7];
         for size in &mut sizes {
@@ -375,8 +375,16 @@ impl PicPart {
             coefficients,
         })
     }
+}
 
-    /// Whether `other` placed the same surfels, hierarchy and caches.
+impl BakePart for PicPart {
+    const TECHNIQUE: &'static str = "pic";
+
+    fn is_first(&self) -> bool {
+        self.first_cache == 0
+    }
+
+    /// The same surfels, hierarchy and caches.
     fn same_setup(&self, other: &Self) -> bool {
         self.surfels == other.surfels
             && self.hierarchy == other.hierarchy
@@ -387,6 +395,18 @@ impl PicPart {
             && self.hierarchy_builder == other.hierarchy_builder
             && self.enclosed_surfels == other.enclosed_surfels
             && self.cache_bands == other.cache_bands
+    }
+
+    fn append(&mut self, next: Self) -> Result<(), &'static str> {
+        if next.first_cache != self.first_cache + self.nodes.len() {
+            return Err("do not follow each other");
+        }
+        self.nodes.extend(next.nodes);
+        self.runtime.extend(next.runtime);
+        self.exponents.extend(next.exponents);
+        self.largest.extend(next.largest);
+        self.coefficients.extend_from_slice(&next.coefficients);
+        Ok(())
     }
 }
 
@@ -405,30 +425,6 @@ impl PicBake {
     pub fn from_parts(
         parts: impl IntoIterator<Item = Result<PicPart, TechniqueError>>,
     ) -> Result<Self, TechniqueError> {
-        let disagree = |message: &str| {
-            TechniqueError::Other(format!(
-                "PIC shards {message}: bake every shard with the same relight, scene and parameters"
-            ))
-        };
-        let mut parts = parts.into_iter();
-        let mut joined = parts.next().ok_or_else(|| disagree("are missing"))??;
-        if joined.first_cache != 0 {
-            return Err(disagree("do not start at the first cache"));
-        }
-        for part in parts {
-            let part = part?;
-            if !part.same_setup(&joined) {
-                return Err(disagree("disagree on their surfels or caches"));
-            }
-            if part.first_cache != joined.nodes.len() {
-                return Err(disagree("do not follow each other"));
-            }
-            joined.nodes.extend(part.nodes);
-            joined.runtime.extend(part.runtime);
-            joined.exponents.extend(part.exponents);
-            joined.largest.extend(part.largest);
-            joined.coefficients.extend_from_slice(&part.coefficients);
-        }
         let PicPart {
             surfels,
             hierarchy,
@@ -445,10 +441,10 @@ impl PicBake {
             largest: per_cache_largest,
             coefficients: mut link_coefficients,
             ..
-        } = joined;
+        } = join_parts(parts)?;
         let cache_count = caches.positions.len();
         if per_cache_nodes.len() != cache_count {
-            return Err(disagree("leave caches unlinked"));
+            return Err(shards_disagree("pic", "leave caches unlinked"));
         }
         // One power-of-two scale keeps every factor a normal f16.
         let largest = per_cache_runtime
@@ -559,12 +555,7 @@ impl PicBake {
 
     pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
         let mut reader = PayloadReader::new(bytes, "pic");
-        let version = reader.u32()?;
-        if version != PAYLOAD_VERSION {
-            return Err(reader.corrupt(&format!(
-                "PIC payload version {version}, this relight reads {PAYLOAD_VERSION}: bake again"
-            )));
-        }
+        reader.version(PAYLOAD_VERSION, "PIC payload", "bake again")?;
         let (surfels, hierarchy, cache_atlas_metres, caches) = read_setup(&mut reader)?;
         let node_count = hierarchy.first_leaf.len();
         let cache_count = caches.positions.len();

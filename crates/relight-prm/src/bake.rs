@@ -10,7 +10,8 @@ use relight_core::sampling::{
 use relight_core::{luminance, Rgb};
 use relight_scene::Scene;
 use relight_technique::{
-    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+    join_parts, shards_disagree, BakePart, PayloadReader, PayloadWriter, Progress, SceneContext,
+    Shard, TechniqueError,
 };
 use relight_trace::Ray;
 
@@ -250,12 +251,11 @@ impl PrmPart {
 
     pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
         let mut reader = PayloadReader::new(bytes, "prm");
-        let version = reader.u32()?;
-        if version != PART_VERSION {
-            return Err(reader.corrupt(&format!(
-                "PRM shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
-            )));
-        }
+        reader.version(
+            PART_VERSION,
+            "PRM shard",
+            "bake the shards with this relight",
+        )?;
         let receiver_count = reader.u32()? as usize;
         let cluster_count = reader.u32()? as usize;
         let requested_rank = reader.u32()? as usize;
@@ -292,9 +292,16 @@ impl PrmPart {
         }
         Ok(part)
     }
+}
 
-    /// Whether `other` was baked from the same entry points for the same
-    /// lightmap and compression.
+impl BakePart for PrmPart {
+    const TECHNIQUE: &'static str = "prm";
+
+    fn is_first(&self) -> bool {
+        self.first_cluster == 0
+    }
+
+    /// The same entry points for the same lightmap and compression.
     fn same_setup(&self, other: &Self) -> bool {
         self.receiver_count == other.receiver_count
             && self.cluster_count == other.cluster_count
@@ -302,6 +309,15 @@ impl PrmPart {
             && self.entry_positions == other.entry_positions
             && self.entry_normals == other.entry_normals
             && self.entry_clusters == other.entry_clusters
+    }
+
+    fn append(&mut self, next: Self) -> Result<(), &'static str> {
+        if next.first_cluster != self.first_cluster + self.cluster_panes() {
+            return Err("do not follow each other");
+        }
+        self.panes.extend_from_slice(&next.panes);
+        self.shares.extend_from_slice(&next.shares);
+        Ok(())
     }
 }
 
@@ -321,29 +337,7 @@ impl PrmBake {
         parts: impl IntoIterator<Item = Result<PrmPart, TechniqueError>>,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
-        let mut parts = parts.into_iter();
-        let mut joined = parts
-            .next()
-            .ok_or_else(|| TechniqueError::Other("PRM merge: no shards given".into()))??;
-        let disagree = |message: &str| {
-            TechniqueError::Other(format!(
-                "PRM shards {message}: bake every shard with the same relight, scene and parameters"
-            ))
-        };
-        if joined.first_cluster != 0 {
-            return Err(disagree("do not start at the first cluster"));
-        }
-        for part in parts {
-            let part = part?;
-            if !part.same_setup(&joined) {
-                return Err(disagree("disagree on their entry points"));
-            }
-            if part.first_cluster != joined.first_cluster + joined.cluster_panes() {
-                return Err(disagree("do not follow each other"));
-            }
-            joined.panes.extend_from_slice(&part.panes);
-            joined.shares.extend_from_slice(&part.shares);
-        }
+        let disagree = |message: &str| shards_disagree("prm", message);
         let PrmPart {
             receiver_count,
             cluster_count,
@@ -354,7 +348,7 @@ impl PrmBake {
             shares,
             mut panes,
             ..
-        } = joined;
+        } = join_parts(parts)?;
         let expected = cluster_count
             .checked_mul(receiver_count)
             .and_then(|values| values.checked_mul(3));

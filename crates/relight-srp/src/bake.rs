@@ -10,7 +10,8 @@ use rayon::prelude::*;
 use relight_core::sampling::{stratified_square, uniform_sphere, SampleStream};
 use relight_core::sh;
 use relight_technique::{
-    PayloadReader, PayloadWriter, Progress, SceneContext, Shard, TechniqueError,
+    join_parts, shards_disagree, BakePart, PayloadReader, PayloadWriter, Progress, SceneContext,
+    Shard, TechniqueError,
 };
 use relight_trace::Ray;
 use std::collections::HashMap;
@@ -546,12 +547,11 @@ impl SrpPart {
 
     pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
         let mut reader = PayloadReader::new(bytes, "srp");
-        let version = reader.u32()?;
-        if version != PART_VERSION {
-            return Err(reader.corrupt(&format!(
-                "SRP shard version {version}, this relight reads {PART_VERSION}: bake the shards with this relight"
-            )));
-        }
+        reader.version(
+            PART_VERSION,
+            "SRP shard",
+            "bake the shards with this relight",
+        )?;
         let receiver_count = reader.u32()? as usize;
         let bands = reader.u32()? as usize;
         let radius = reader.finite()?;
@@ -587,8 +587,16 @@ impl SrpPart {
         reader.end()?;
         Ok(part)
     }
+}
 
-    /// Whether `other` placed the same probes for the same lightmap.
+impl BakePart for SrpPart {
+    const TECHNIQUE: &'static str = "srp";
+
+    fn is_first(&self) -> bool {
+        self.first_probe == 0 && self.irradiance.first == 0 && self.radiance.first == 0
+    }
+
+    /// The same probes for the same lightmap.
     fn same_setup(&self, other: &Self) -> bool {
         self.receiver_count == other.receiver_count
             && self.bands == other.bands
@@ -598,6 +606,15 @@ impl SrpPart {
             && self.samples == other.samples
             && self.sample_directions == other.sample_directions
             && self.radiance_bands == other.radiance_bands
+    }
+
+    fn append(&mut self, next: Self) -> Result<(), &'static str> {
+        if next.first_probe * self.sample_directions.len() != self.sample_targets.len() {
+            return Err("do not follow each other");
+        }
+        self.sample_targets.extend(next.sample_targets);
+        self.irradiance.join(next.irradiance)?;
+        self.radiance.join(next.radiance)
     }
 }
 
@@ -616,28 +633,7 @@ impl SrpBake {
     pub fn from_parts(
         parts: impl IntoIterator<Item = Result<SrpPart, TechniqueError>>,
     ) -> Result<Self, TechniqueError> {
-        let disagree = |message: &str| {
-            TechniqueError::Other(format!(
-                "SRP shards {message}: bake every shard with the same relight, scene and parameters"
-            ))
-        };
-        let mut parts = parts.into_iter();
-        let mut joined = parts.next().ok_or_else(|| disagree("are missing"))??;
-        if joined.first_probe != 0 {
-            return Err(disagree("do not start at the first probe"));
-        }
-        for part in parts {
-            let part = part?;
-            if !part.same_setup(&joined) {
-                return Err(disagree("disagree on their probes"));
-            }
-            if part.first_probe * joined.sample_directions.len() != joined.sample_targets.len() {
-                return Err(disagree("do not follow each other"));
-            }
-            joined.sample_targets.extend(part.sample_targets);
-            joined.irradiance.join(part.irradiance).map_err(disagree)?;
-            joined.radiance.join(part.radiance).map_err(disagree)?;
-        }
+        let disagree = |message: &str| shards_disagree("srp", message);
         let SrpPart {
             receiver_count,
             bands,
@@ -651,7 +647,7 @@ impl SrpBake {
             radiance,
             sample_targets: targets,
             ..
-        } = joined;
+        } = join_parts(parts)?;
         if targets.len() != probes.len() * sample_directions.len() {
             return Err(disagree("leave probes without sample tables"));
         }
@@ -750,12 +746,7 @@ impl SrpBake {
 
     pub fn decode(bytes: &[u8]) -> Result<Self, TechniqueError> {
         let mut reader = PayloadReader::new(bytes, "srp");
-        let version = reader.u32()?;
-        if version != PAYLOAD_VERSION {
-            return Err(reader.corrupt(&format!(
-                "SRP payload version {version}, this relight reads {PAYLOAD_VERSION}"
-            )));
-        }
+        reader.version(PAYLOAD_VERSION, "SRP payload", "bake again")?;
         let receiver_count = reader.u32()? as usize;
         let bands = reader.u32()? as usize;
         let radius = reader.finite()?;

@@ -39,4 +39,6 @@ pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
-pub use shard::{parameters_fingerprint, read_shard_set, Shard, ShardSet};
+pub use shard::{
+    join_parts, parameters_fingerprint, read_shard_set, shards_disagree, BakePart, Shard, ShardSet,
+};

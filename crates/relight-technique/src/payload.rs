@@ -129,6 +129,24 @@ impl<'a> PayloadReader<'a> {
         }
     }
 
+    /// Reads the payload's version; fails unless it is `expected`, naming
+    /// `what` the payload is and what to do about it.
+    pub fn version(
+        &mut self,
+        expected: u32,
+        what: &str,
+        remedy: &str,
+    ) -> Result<(), TechniqueError> {
+        let version = self.u32()?;
+        if version == expected {
+            Ok(())
+        } else {
+            Err(self.corrupt(&format!(
+                "{what} version {version}, this relight reads {expected}: {remedy}"
+            )))
+        }
+    }
+
     /// A finite f32.
     pub fn finite(&mut self) -> Result<f32, TechniqueError> {
         let value = self.f32()?;

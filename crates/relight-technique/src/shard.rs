@@ -72,6 +72,50 @@ impl std::str::FromStr for Shard {
     }
 }
 
+/// One shard's part of a technique's bake, which the merge joins to the
+/// parts of the shards after it.
+pub trait BakePart: Sized {
+    /// The technique's name, for errors.
+    const TECHNIQUE: &'static str;
+    /// Whether the part holds the first work items (shard 0's).
+    fn is_first(&self) -> bool;
+    /// Whether `other` was baked from the same set-up (the work every
+    /// shard repeats), so that their parts belong to one bake.
+    fn same_setup(&self, other: &Self) -> bool;
+    /// Appends `next`, which must hold the work items right after this
+    /// part's; says what is wrong otherwise.
+    fn append(&mut self, next: Self) -> Result<(), &'static str>;
+}
+
+/// The error for shards that do not form one bake.
+pub fn shards_disagree(technique: &str, message: &str) -> TechniqueError {
+    TechniqueError::Other(format!(
+        "{} shards {message}: bake every shard with the same relight, scene and parameters",
+        technique.to_uppercase()
+    ))
+}
+
+/// Joins parts given in shard order into one, which holds every work item
+/// when no shard is missing.
+pub fn join_parts<P: BakePart>(
+    parts: impl IntoIterator<Item = Result<P, TechniqueError>>,
+) -> Result<P, TechniqueError> {
+    let disagree = |message: &str| shards_disagree(P::TECHNIQUE, message);
+    let mut parts = parts.into_iter();
+    let mut joined = parts.next().ok_or_else(|| disagree("are missing"))??;
+    if !joined.is_first() {
+        return Err(disagree("do not start with the first shard"));
+    }
+    for part in parts {
+        let part = part?;
+        if !part.same_setup(&joined) {
+            return Err(disagree("disagree on the set-up every shard repeats"));
+        }
+        joined.append(part).map_err(disagree)?;
+    }
+    Ok(joined)
+}
+
 /// FNV-1a over the bake parameters in effect (the scene file's technique
 /// section, then `params`, the later of a repeated key winning), restricted
 /// to the kind's [`TechniqueKind::bake_parameters`] and sorted by key: two
