@@ -45,6 +45,34 @@ pub struct BakeStats {
     pub captured_energy: f32,
 }
 
+impl BakeStats {
+    /// The placement's counts, in the order bake payloads store them.
+    fn placement_counts(&self) -> [u32; 6] {
+        [
+            self.placed_probes,
+            self.added_for_coverage,
+            self.min_probes,
+            self.receivers_short_of_probes,
+            self.probes_inside_geometry,
+            self.open_receivers,
+        ]
+    }
+
+    fn from_placement_counts(counts: [u32; 6]) -> Self {
+        let [placed_probes, added_for_coverage, min_probes, receivers_short_of_probes, probes_inside_geometry, open_receivers] =
+            counts;
+        Self {
+            placed_probes,
+            added_for_coverage,
+            min_probes,
+            receivers_short_of_probes,
+            probes_inside_geometry,
+            open_receivers,
+            ..Default::default()
+        }
+    }
+}
+
 /// Everything the run time needs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SrpBake {
@@ -524,14 +552,7 @@ impl SrpPart {
         writer.f32(self.radius);
         writer.vectors(&self.probes);
         let stats = &self.stats;
-        for value in [
-            stats.placed_probes,
-            stats.added_for_coverage,
-            stats.min_probes,
-            stats.receivers_short_of_probes,
-            stats.probes_inside_geometry,
-            stats.open_receivers,
-        ] {
+        for value in stats.placement_counts() {
             writer.u32(value);
         }
         writer.f32(stats.mean_nearby);
@@ -561,14 +582,8 @@ impl SrpPart {
             *count = reader.u32()?;
         }
         let stats = BakeStats {
-            placed_probes: counts[0],
-            added_for_coverage: counts[1],
-            min_probes: counts[2],
-            receivers_short_of_probes: counts[3],
-            probes_inside_geometry: counts[4],
-            open_receivers: counts[5],
             mean_nearby: reader.finite()?,
-            ..Default::default()
+            ..BakeStats::from_placement_counts(counts)
         };
         let part = Self {
             receiver_count,
@@ -722,14 +737,7 @@ impl SrpBake {
         writer.u32s(&self.visible_receivers);
         self.clusters.write(&mut writer);
         let stats = &self.stats;
-        for value in [
-            stats.placed_probes,
-            stats.added_for_coverage,
-            stats.min_probes,
-            stats.receivers_short_of_probes,
-            stats.probes_inside_geometry,
-            stats.open_receivers,
-        ] {
+        for value in stats.placement_counts() {
             writer.u32(value);
         }
         writer.f32s(&[
@@ -778,15 +786,10 @@ impl SrpBake {
             visible_receivers,
             clusters,
             stats: BakeStats {
-                placed_probes: counts[0],
-                added_for_coverage: counts[1],
-                min_probes: counts[2],
-                receivers_short_of_probes: counts[3],
-                probes_inside_geometry: counts[4],
-                open_receivers: counts[5],
                 mean_nearby: floats.first().copied().unwrap_or(0.0),
                 valid_sample_fraction: floats.get(1).copied().unwrap_or(0.0),
                 captured_energy: floats.get(2).copied().unwrap_or(0.0),
+                ..BakeStats::from_placement_counts(counts)
             },
             radiance,
         };
