@@ -458,7 +458,18 @@ impl SrpPart {
             transport::aabb_clusters(&receivers.positions, params.cluster_size as usize);
         progress.finish();
         let total = clusters.len();
-        let own = shard.range(total);
+        // A receiver's rays: its samples, each tested against the nearby
+        // probes it uses; clusters differ in them, so shards split by cost.
+        let costs: Vec<u64> = clusters
+            .iter()
+            .map(|members| {
+                members
+                    .iter()
+                    .map(|&receiver| 1 + nearby[receiver as usize].len() as u64)
+                    .sum()
+            })
+            .collect();
+        let own = shard.weighted_range(&costs);
         clusters.truncate(own.end);
         let clusters = clusters.split_off(own.start);
         let settings = TransportSettings {
@@ -899,7 +910,16 @@ fn radiance_transport(
     // time) the size of the irradiance's.
     let cluster_receivers = (params.cluster_size as usize / outputs).max(1);
     let all_clusters = transport::aabb_clusters(&positions, cluster_receivers);
-    let own = shard.range(all_clusters.len());
+    let costs: Vec<u64> = all_clusters
+        .iter()
+        .map(|members| {
+            members
+                .iter()
+                .map(|&local| 1 + nearby[glossy[local as usize] as usize].len() as u64)
+                .sum()
+        })
+        .collect();
+    let own = shard.weighted_range(&costs);
     let clusters: Vec<Vec<u32>> = all_clusters[own.clone()]
         .iter()
         .map(|members| {

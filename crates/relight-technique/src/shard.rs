@@ -48,6 +48,34 @@ impl Shard {
         let part = |index: u32| (total as u128 * index as u128 / self.count as u128) as usize;
         part(self.index)..part(self.index + 1)
     }
+
+    /// This shard's part of work items of the given costs: contiguous, in
+    /// index order over all shards, each part ending at the first item
+    /// whose running cost reaches its share of the total.
+    pub fn weighted_range(self, costs: &[u64]) -> Range<usize> {
+        let total: u128 = costs.iter().map(|&cost| cost as u128).sum();
+        if total == 0 {
+            return self.range(costs.len());
+        }
+        let boundary = |index: u32| -> usize {
+            if index == 0 {
+                return 0;
+            }
+            if index == self.count {
+                return costs.len();
+            }
+            let share = total * index as u128 / self.count as u128;
+            let mut running = 0u128;
+            costs
+                .iter()
+                .position(|&cost| {
+                    running += cost as u128;
+                    running >= share
+                })
+                .map_or(costs.len(), |last| last + 1)
+        };
+        boundary(self.index)..boundary(self.index + 1)
+    }
 }
 
 impl fmt::Display for Shard {
@@ -338,6 +366,35 @@ mod tests {
         let fewer = write_shard(folder, "fewer", Some(Shard { index: 1, count: 2 }), 1);
         assert!(error(&[parts[0].clone(), fewer]).contains("of 2 shards"));
         assert!(read_shard_set(&[]).is_err());
+    }
+
+    #[test]
+    fn weighted_ranges_cover_the_work_once_and_balance_its_cost() {
+        let costs: Vec<u64> = (0..100u64)
+            .map(|item| 1 + (item % 7) * (item % 3) * 10)
+            .collect();
+        let total: u64 = costs.iter().sum();
+        for count in 1..=6u32 {
+            let mut next = 0;
+            for index in 0..count {
+                let range = Shard { index, count }.weighted_range(&costs);
+                assert_eq!(range.start, next, "{index}/{count}");
+                let cost: u64 = costs[range.clone()].iter().sum();
+                // A part overshoots its share by at most one item.
+                let largest = *costs.iter().max().unwrap();
+                assert!(
+                    cost <= total.div_ceil(count as u64) + largest,
+                    "{index}/{count}: {cost} of {total}"
+                );
+                next = range.end;
+            }
+            assert_eq!(next, costs.len());
+        }
+        assert_eq!(
+            Shard { index: 1, count: 2 }.weighted_range(&[0, 0, 0, 0]),
+            2..4
+        );
+        assert_eq!(Shard::WHOLE.weighted_range(&[]), 0..0);
     }
 
     #[test]
