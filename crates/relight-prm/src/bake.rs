@@ -35,8 +35,8 @@ fn compressed_rank(params: &PrmParams) -> u64 {
 /// The most the panes take during `shard`'s bake over `receivers` texels:
 /// its f16 panes with one f32 pane per worker thread while they are
 /// gathered, and for a whole bake then every pane with the compression's
-/// f16 basis (the peak at the defaults: Sponza's 256 + 128 panes are 870
-/// of the 949 MB the bake's process peaks at, the rest being the scene,
+/// f16 basis (the peak at the defaults: Sponza's 256 + 128 panes are 831
+/// of the 928 MiB the bake's process peaks at, the rest being the scene,
 /// its BVH and lightmap). A merge peaks like a whole bake.
 pub fn estimate_peak_bytes(params: &PrmParams, shard: Shard, receivers: u64) -> u64 {
     let own = shard.range(params.clusters as usize).len() as u64;
