@@ -303,6 +303,32 @@ fn numbered_path(path: &std::path::Path, index: u32) -> PathBuf {
     path.with_file_name(name)
 }
 
+/// Writes a bake file as the stage `write`, then says `what` was written,
+/// in how long since `start`, and each stage's share of that time.
+fn write_and_report(
+    bars: &Bars,
+    output: &Path,
+    header: &relight_technique::BakeHeader,
+    payload: &[u8],
+    start: std::time::Instant,
+    what: &str,
+) -> Result<std::time::Duration> {
+    bars.start("write", 1);
+    relight_technique::write_bake_atomic(output, header, payload)?;
+    bars.finish();
+    let elapsed = start.elapsed();
+    say!(
+        "{what} in {:.2} s: {} ({} bytes)",
+        elapsed.as_secs_f64(),
+        output.display(),
+        payload.len()
+    );
+    for line in bars.stage_report(elapsed) {
+        say!("{line}");
+    }
+    Ok(elapsed)
+}
+
 fn create_technique(
     context: &Arc<SceneContext>,
     options: &TechniqueOptions,
@@ -529,23 +555,14 @@ fn run(cli: Cli) -> Result<()> {
                 Some(shard) => kind.bake_shard(&context, &pairs, shard, &bars)?,
                 None => kind.bake(&context, &pairs, &bars)?,
             };
-            bars.start("write", 1);
-            relight_technique::write_bake_atomic(&output, &header, &payload)?;
-            bars.finish();
-            let elapsed = start.elapsed();
-            say!(
-                "baked {}{} in {:.2} s: {} ({} bytes)",
+            let what = format!(
+                "baked {}{}",
                 kind.name(),
                 shard
                     .map(|shard| format!(" shard {shard}"))
-                    .unwrap_or_default(),
-                elapsed.as_secs_f64(),
-                output.display(),
-                payload.len()
+                    .unwrap_or_default()
             );
-            for line in bars.stage_report(elapsed) {
-                say!("{line}");
-            }
+            let elapsed = write_and_report(&bars, &output, &header, &payload, start, &what)?;
             let rays = relight_trace::counters::rays_traced().since(rays_before);
             if rays.total() > 0 {
                 let (bound, line) = bench::ray_bound(&context, rays);
@@ -563,21 +580,8 @@ fn run(cli: Cli) -> Result<()> {
             let kind = techniques::find(&set.header.technique)?;
             let bars = Bars::new(quiet);
             let payload = kind.merge_shards(set.payloads, &bars)?;
-            bars.start("write", 1);
-            relight_technique::write_bake_atomic(&output, &set.header, &payload)?;
-            bars.finish();
-            let elapsed = start.elapsed();
-            say!(
-                "merged {} shards of {} in {:.2} s: {} ({} bytes)",
-                shards.len(),
-                kind.name(),
-                elapsed.as_secs_f64(),
-                output.display(),
-                payload.len()
-            );
-            for line in bars.stage_report(elapsed) {
-                say!("{line}");
-            }
+            let what = format!("merged {} shards of {}", shards.len(), kind.name());
+            write_and_report(&bars, &output, &set.header, &payload, start, &what)?;
             Ok(())
         }
         Command::Bench {
