@@ -282,34 +282,37 @@ pub fn shadow_ray_target(scene: &relight_scene::Scene) -> Vec3 {
         ))
 }
 
-/// How long the rays a bake traced alone take on `context`'s scene, at
-/// the rates `relight bench-rays` measures there now (2^18 rays of each
-/// kind, median of three passes): closest-hit rays at its diffuse
-/// closest-hit rate, occlusion rays at its diffuse occlusion rate.
-/// Returns (seconds, the rates line for the report).
-pub fn ray_bound(
-    context: &relight_technique::SceneContext,
-    rays: relight_trace::counters::RayCount,
-) -> (f64, String) {
+/// The scene's own diffuse ray rates (rays per second, closest-hit and
+/// occlusion), as `relight bench-rays` measures them, on `rays` rays.
+pub fn scene_ray_rates(context: &relight_technique::SceneContext, rays: usize) -> (f64, f64) {
     let mesh = &context.scene.mesh;
     let rates = relight_trace::raybench::rates_on(
         &context.bvh,
         &mesh.positions,
         &mesh.triangles,
         shadow_ray_target(&context.scene),
-        1 << 18,
+        rays,
         3,
         1,
     );
-    let seconds = rays.closest_hit as f64 / (rates.diffuse_closest_hit * 1e6).max(1e-9)
-        + rays.occlusion as f64 / (rates.diffuse_occlusion * 1e6).max(1e-9);
+    (
+        rates.diffuse_closest_hit * 1e6,
+        rates.diffuse_occlusion * 1e6,
+    )
+}
+
+/// The time `rays` alone take at the scene's `rates` (from
+/// [`scene_ray_rates`]), with a report line.
+pub fn ray_bound(rates: (f64, f64), rays: relight_trace::counters::RayCount) -> (f64, String) {
+    let seconds =
+        rays.closest_hit as f64 / rates.0.max(1.0) + rays.occlusion as f64 / rates.1.max(1.0);
     let line = format!(
         "rays            {:.1} M closest-hit + {:.1} M occlusion: {:.1} s at this scene's {:.2} / {:.2} Mrays/s (relight bench-rays' diffuse rays, {} threads)",
         rays.closest_hit as f64 / 1e6,
         rays.occlusion as f64 / 1e6,
         seconds,
-        rates.diffuse_closest_hit,
-        rates.diffuse_occlusion,
+        rates.0 / 1e6,
+        rates.1 / 1e6,
         rayon::current_num_threads()
     );
     (seconds, line)

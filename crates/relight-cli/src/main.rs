@@ -136,8 +136,16 @@ enum Command {
         /// missing shards.
         #[arg(long, value_name = "INDEX/COUNT")]
         shard: Option<relight_technique::Shard>,
-        #[arg(short, long)]
-        output: PathBuf,
+        /// Refuse at once a bake whose estimated peak memory is over SIZE
+        /// (4G, 512M; binary units). Default: the memory available now
+        /// (the system's, or what is left under a container's limit).
+        #[arg(long, value_name = "SIZE", value_parser = relight_technique::parse_size)]
+        max_memory: Option<u64>,
+        /// Print the bake's estimated time and peak memory and stop.
+        #[arg(long)]
+        estimate: bool,
+        #[arg(short, long, required_unless_present = "estimate")]
+        output: Option<PathBuf>,
     },
     /// Join the shards of a sharded bake (`relight bake --shard I/N`) into
     /// the bake file an unsharded bake writes, byte for byte.
@@ -327,6 +335,68 @@ fn write_and_report(
         say!("{line}");
     }
     Ok(elapsed)
+}
+
+/// Returns memory the loaders freed to the system. glibc keeps freed
+/// small blocks in its arenas, where the resident set still counts them:
+/// after loading a 1M-triangle scene that is a third of it, which a bake's
+/// own small allocations then reuse without raising the peak, so an
+/// estimate that added the bake to the resident set would count it twice.
+fn release_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages to the system; it has no
+    // preconditions and touches no live allocation.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
+/// Prints a bake's forecast (time at the scene's ray `rates`, peak memory:
+/// the process now, with the scene loaded, plus what the bake will hold)
+/// and refuses the bake when that peak is over `max_memory` (default: the
+/// memory available now).
+fn check_estimate(
+    forecast: &relight_technique::BakeEstimate,
+    rates: (f64, f64),
+    max_memory: Option<u64>,
+    technique: &str,
+) -> Result<()> {
+    use relight_technique::format_bytes;
+    release_freed_memory();
+    let scene_bytes = relight_technique::resident_bytes().unwrap_or(0);
+    let peak = scene_bytes + forecast.peak_bytes();
+    let held: Vec<String> = forecast
+        .peak
+        .iter()
+        .map(|(what, bytes)| format!("{what} {}", format_bytes(*bytes)))
+        .collect();
+    say!(
+        "estimate        {:.0} s and {} at peak: the loaded scene {} + {}; {:.1} M closest-hit + {:.1} M occlusion rays",
+        forecast.seconds(rates.0, rates.1),
+        format_bytes(peak),
+        format_bytes(scene_bytes),
+        held.join(" + "),
+        forecast.rays.closest_hit as f64 / 1e6,
+        forecast.rays.occlusion as f64 / 1e6,
+    );
+    let (limit, source) = match max_memory {
+        Some(limit) => (Some(limit), "--max-memory"),
+        None => (
+            relight_technique::available_bytes(),
+            "the memory available now; set another with --max-memory SIZE",
+        ),
+    };
+    if let Some(limit) = limit {
+        if peak > limit {
+            anyhow::bail!(
+                "the {technique} bake would need about {} at its peak, over the limit of {} ({source}): lower it with {}",
+                format_bytes(peak),
+                format_bytes(limit),
+                forecast.lower_memory_with
+            );
+        }
+    }
+    Ok(())
 }
 
 fn create_technique(
@@ -520,6 +590,8 @@ fn run(cli: Cli) -> Result<()> {
             technique,
             options,
             shard,
+            max_memory,
+            estimate,
             output,
         } => {
             let context = load_context(&scene, &options, quiet)?;
@@ -536,9 +608,9 @@ fn run(cli: Cli) -> Result<()> {
                 ),
                 shard,
             };
-            if let Some(shard) = shard {
+            if let (Some(shard), Some(output)) = (shard, &output) {
                 // A whole, checksummed file: a shard cut short is baked again.
-                if let Ok((existing, _)) = relight_technique::read_bake(&output) {
+                if let Ok((existing, _)) = relight_technique::read_bake(output) {
                     if existing == header {
                         say!(
                             "{}: shard {shard} of this scene and parameters is already baked; kept (delete it to bake it again)",
@@ -548,6 +620,20 @@ fn run(cli: Cli) -> Result<()> {
                     }
                 }
             }
+            let rates = bench::scene_ray_rates(&context, 1 << 18);
+            let forecast = kind.estimate(
+                &context,
+                &pairs,
+                shard.unwrap_or(relight_technique::Shard::WHOLE),
+            )?;
+            if let Some(forecast) = &forecast {
+                check_estimate(forecast, rates, max_memory, kind.name())?;
+            } else if estimate {
+                say!("{} has no bake to estimate", kind.name());
+            }
+            let Some(output) = output.filter(|_| !estimate) else {
+                return Ok(());
+            };
             let start = std::time::Instant::now();
             let rays_before = relight_trace::counters::rays_traced();
             let bars = Bars::new(quiet);
@@ -565,7 +651,7 @@ fn run(cli: Cli) -> Result<()> {
             let elapsed = write_and_report(&bars, &output, &header, &payload, start, &what)?;
             let rays = relight_trace::counters::rays_traced().since(rays_before);
             if rays.total() > 0 {
-                let (bound, line) = bench::ray_bound(&context, rays);
+                let (bound, line) = bench::ray_bound(rates, rays);
                 say!("{line}");
                 say!(
                     "ray bound       the bake took {:.2}x the time its rays alone need",

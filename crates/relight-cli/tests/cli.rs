@@ -321,6 +321,77 @@ fn converge_sweeps_and_caches_a_reference_per_light_set() {
 /// writes the bytes of the whole bake on all threads, for every technique
 /// that bakes, each on another shipped scene; a rerun keeps a finished
 /// shard, and a merge names missing or foreign shards.
+/// Millions of (closest-hit, occlusion) rays on the report line that
+/// starts with `label`.
+fn rays_on_line(report: &str, label: &str) -> (f64, f64) {
+    let line = report
+        .lines()
+        .find(|line| line.starts_with(label))
+        .unwrap_or_else(|| panic!("no '{label}' line in {report}"));
+    let number_before = |marker: &str| -> f64 {
+        let end = line.find(marker).unwrap_or_else(|| panic!("{line}"));
+        line[..end]
+            .trim_end()
+            .rsplit(' ')
+            .next()
+            .and_then(|word| word.parse().ok())
+            .unwrap_or_else(|| panic!("{line}"))
+    };
+    (
+        number_before(" M closest-hit"),
+        number_before(" M occlusion"),
+    )
+}
+
+/// The rays a bake's estimate forecast before it started against those it
+/// traced: within 30 % of all of them, so that its time, which the ray
+/// rates turn them into, can stay within the 50 % the estimate promises
+/// (the rest is the work between rays, which varies by scene).
+fn check_estimated_rays(technique: &str, report: &str) {
+    let (estimated_closest, estimated_occlusion) = rays_on_line(report, "estimate");
+    let (closest, occlusion) = rays_on_line(report, "rays ");
+    let ratio = (estimated_closest + estimated_occlusion) / (closest + occlusion);
+    assert!(
+        (0.7..1.3).contains(&ratio),
+        "{technique}: estimated {estimated_closest} + {estimated_occlusion} M rays, traced {closest} + {occlusion} M"
+    );
+}
+
+#[test]
+fn bakes_are_estimated_first_and_refused_over_the_memory_limit() {
+    let folder = tempfile::tempdir().unwrap();
+    let output = folder.path().join("box.bake");
+    let bake = || {
+        let mut command = relight();
+        command
+            .args(["bake", "-q", "--technique", "prm"])
+            .arg(scene("cornell-box"));
+        command
+    };
+    let error = run_err(bake().args(["--max-memory", "1M", "-o"]).arg(&output));
+    assert!(
+        error.contains("--max-memory")
+            && error.contains("--set clusters=N")
+            && error.contains("--shard"),
+        "{error}"
+    );
+    assert!(!output.exists(), "a refused bake writes nothing");
+    let estimate = run_ok(bake().arg("--estimate"));
+    assert!(estimate.starts_with("estimate "), "{estimate}");
+    assert!(!output.exists());
+    let error = run_err(bake().args(["--max-memory", "lots", "--estimate"]));
+    assert!(
+        error.contains("--max-memory") && error.contains("4G"),
+        "{error}"
+    );
+    let direct = run_ok(
+        relight()
+            .args(["bake", "-q", "--technique", "direct", "--estimate"])
+            .arg(scene("cornell-box")),
+    );
+    assert!(direct.contains("no bake"), "{direct}");
+}
+
 #[test]
 fn four_shards_merge_to_the_whole_bake() {
     let folder = tempfile::tempdir().unwrap();
@@ -345,6 +416,7 @@ fn four_shards_merge_to_the_whole_bake() {
         // The report splits the time by stage and compares it with the rays.
         assert!(report.contains("outside the stages"), "{report}");
         assert!(report.contains("its rays alone need"), "{report}");
+        check_estimated_rays(technique, &report);
         let parts: Vec<PathBuf> = (0..4)
             .map(|index| path(&format!("{technique}-part-{index}.bake")))
             .collect();

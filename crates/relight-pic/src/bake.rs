@@ -9,8 +9,8 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::octahedral_encode;
 use relight_technique::{
-    join_parts, shards_disagree, BakePart, PayloadReader, PayloadWriter, Progress, SceneContext,
-    Shard, TechniqueError,
+    join_parts, shards_disagree, BakeEstimate, BakePart, PayloadReader, PayloadWriter, Progress,
+    SceneContext, Shard, TechniqueError,
 };
 
 const PAYLOAD_VERSION: u32 = 2;
@@ -764,4 +764,86 @@ fn read_setup(
         grid_culled: counts[3] as usize,
     };
     Ok((surfels, hierarchy, cache_atlas_metres, caches))
+}
+
+/// Occlusion rays per link, over `link_samples + node_samples`: a link's
+/// own samples, and the node estimates of the cut that chose it (a cut
+/// looks at two children per link, most with `node_samples` rays, some
+/// with up to four times as many) less the links a cache that sees little
+/// never fills. Measured on Sponza, the living room and the atriums at the
+/// defaults: 0.76-0.82 of the sum.
+const RAYS_PER_LINK_SAMPLE: f64 = 0.8;
+
+/// Bytes per scene triangle the cache atlas's trial builds hold, from the
+/// peaks above.
+const CACHE_ATLAS_BYTES_PER_TRIANGLE: u64 = 120;
+
+/// Forecasts the bake of `shard` from the parameters: its rays are the
+/// caches' links (the lightmap caches wanted plus the grid cells), its
+/// fixed time the surfels' clustering, and its peak the links held while
+/// they are made and then encoded.
+pub fn estimate(context: &SceneContext, params: &PicParams, shard: Shard) -> BakeEstimate {
+    let receivers = context.atlas.receivers.len() as u64;
+    let lightmap_caches = if params.lightmap_caches == 0 {
+        receivers
+    } else {
+        (params.lightmap_caches as u64).min(receivers)
+    };
+    let grid_cells = if params.grid.iter().all(|&d| d > 0) {
+        params.grid.iter().map(|&d| d as u64).product()
+    } else {
+        params.grid_cells as u64
+    };
+    let caches = lightmap_caches + grid_cells;
+    let own_caches = shard.range(caches as usize).len() as u64;
+    let links = links_per_cache(params.links as usize, params.surfels as usize) as u64;
+    let occlusion = own_caches as f64
+        * params.links.min(params.surfels) as f64
+        * (params.link_samples + params.node_samples) as f64
+        * RAYS_PER_LINK_SAMPLE;
+    let coefficients = if params.projected {
+        (params.bands * params.bands) as u64
+    } else {
+        0
+    };
+    // Per link: its node (4 bytes), its runtime factor, cone and direction
+    // (20) or its f16 coefficients, held while baking and again encoded.
+    let link_bytes = if params.projected {
+        4 + 2 * coefficients
+    } else {
+        4 + 20
+    };
+    let links_held = 2 * own_caches * links * link_bytes;
+    // Surfels (position, normal, albedo, area, ...) and two hierarchy nodes
+    // each, with the clustering's neighbour lists.
+    let surfels_held = params.surfels as u64 * 400;
+    // A scene lightmap finer than the caches wanted gets a coarser atlas of
+    // its own, found by trial builds over every triangle, two alive at a
+    // time: the 1M-triangle atrium's bake peaks 161 MiB above its links and
+    // surfels, the 300k one's 18 MiB, Sponza's (66k) 5 MiB.
+    let cache_atlas = if params.lightmap_caches > 0 && receivers > lightmap_caches {
+        context.scene.mesh.triangles.len() as u64 * CACHE_ATLAS_BYTES_PER_TRIANGLE
+    } else {
+        0
+    };
+    // The agglomerative clustering's time grows as n^1.5 on these scenes
+    // (Sponza, 2 threads: 0.4 s at 32k surfels, 3.1 s at 128k), placement
+    // and surfels about as much again at 32k.
+    let surfel_thousands = params.surfels as f64 / 32768.0;
+    let threads = rayon::current_num_threads() as f64;
+    let fixed_seconds = 2.0 * 0.8 * surfel_thousands.powf(1.5) / threads;
+    BakeEstimate {
+        rays: relight_trace::counters::RayCount {
+            closest_hit: 0,
+            occlusion: occlusion as u64,
+        },
+        time_per_ray_time: 1.6,
+        fixed_seconds,
+        peak: vec![
+            (format!("links ({own_caches} caches x {links})"), links_held),
+            (format!("surfels ({})", params.surfels), surfels_held),
+            ("cache atlas".into(), cache_atlas),
+        ],
+        lower_memory_with: "--set links=N, --set lightmap_caches=N, --set grid_cells=N, or --shard I/N on several machines".into(),
+    }
 }

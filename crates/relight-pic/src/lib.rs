@@ -437,6 +437,15 @@ impl TechniqueKind for PicKind {
         );
         Ok(bake.encode())
     }
+    fn estimate(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+    ) -> Result<Option<relight_technique::BakeEstimate>, TechniqueError> {
+        let params = PicParams::from_scene(context, params)?;
+        Ok(Some(bake::estimate(context, &params, shard)))
+    }
     fn bake_shard(
         &self,
         context: &SceneContext,

@@ -10,8 +10,8 @@ use relight_core::sampling::{
 use relight_core::{luminance, Rgb};
 use relight_scene::Scene;
 use relight_technique::{
-    join_parts, shards_disagree, BakePart, PayloadReader, PayloadWriter, Progress, SceneContext,
-    Shard, TechniqueError,
+    join_parts, shards_disagree, BakeEstimate, BakePart, PayloadReader, PayloadWriter, Progress,
+    SceneContext, Shard, TechniqueError,
 };
 use relight_trace::Ray;
 
@@ -34,22 +34,106 @@ fn compressed_rank(params: &PrmParams) -> u64 {
 
 /// The most the panes take during `shard`'s bake over `receivers` texels:
 /// its f16 panes with one f32 pane per worker thread while they are
-/// gathered, and for a whole bake then every pane with the compression's
-/// f16 basis (the peak at the defaults: Sponza's 256 + 128 panes are 831
-/// of the 928 MiB the bake's process peaks at, the rest being the scene,
-/// its BVH and lightmap). A merge peaks like a whole bake.
+/// gathered, for a shard then its panes again as the encoded payload, and
+/// for a whole bake every pane with the compression's f16 basis (the peak
+/// at the defaults: Sponza's 256 + 128 panes are 831 of the 924 MiB the
+/// bake's process peaks at, the rest being the scene, its BVH and
+/// lightmap). A merge peaks like a whole bake.
 pub fn estimate_peak_bytes(params: &PrmParams, shard: Shard, receivers: u64) -> u64 {
-    let own = shard.range(params.clusters as usize).len() as u64;
-    let gathering =
-        estimate_pane_bytes(own, receivers) + rayon::current_num_threads() as u64 * receivers * 12;
+    let own = estimate_pane_bytes(
+        shard.range(params.clusters as usize).len() as u64,
+        receivers,
+    );
+    let scratch = rayon::current_num_threads() as u64 * receivers * 12;
     if shard == Shard::WHOLE {
-        gathering.max(estimate_pane_bytes(
+        (own + scratch).max(estimate_pane_bytes(
             params.clusters as u64 + compressed_rank(params),
             receivers,
         ))
     } else {
-        gathering
+        (own + scratch).max(2 * own)
     }
+}
+
+/// Entry points whose light paths forecast a bake's rays: 256 of the
+/// default 4096, a few milliseconds.
+const PILOT_ENTRIES: usize = 256;
+
+/// An odd multiplier near 2^32 / golden ratio: `k * PILOT_SPREAD mod n`
+/// visits every low-bit pattern for a power-of-two `n`.
+const PILOT_SPREAD: u64 = 2_654_435_761;
+
+/// Receiver pairs each pilot light is tested against for facing.
+const PILOT_RECEIVERS: usize = 4096;
+
+/// Forecasts `shard`'s bake without baking: the same entry points and light
+/// paths as the bake for a sample of the entries give the lights per entry,
+/// and a sample of receivers the share of them each light faces (only
+/// those get a shadow ray). Time per ray time: the bakes at the defaults
+/// took 0.96 (the living room) to 1.6 (Sponza) times their rays' time.
+pub fn estimate(
+    context: &SceneContext,
+    params: &PrmParams,
+    shard: Shard,
+) -> Result<BakeEstimate, TechniqueError> {
+    let receivers = &context.atlas.receivers;
+    let receiver_count = receivers.len();
+    let entries = sample_entries(&context.scene, params.entries as usize)?;
+    let area_per_entry = context.scene.mesh.total_area() as f32 / params.entries as f32;
+    let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
+    // Entries are a Halton sequence whose base-2 digits pick the triangle:
+    // every 64th entry would all lie in the first 64th of the area, so the
+    // pilot takes the entries an odd multiplier spreads over every residue.
+    let pilot_count = PILOT_ENTRIES.min(params.entries as usize);
+    let receiver_stride = (receiver_count / PILOT_RECEIVERS).max(1);
+    let (mut pilots, mut lights, mut path_rays, mut pairs, mut facing) =
+        (0u64, 0u64, 0u64, 0u64, 0u64);
+    for pilot in 0..pilot_count {
+        let entry = (pilot as u64 * PILOT_SPREAD % params.entries as u64) as usize;
+        let vertices =
+            light_path_vertices(context, &entries, entry, area_per_entry, params, epsilon);
+        pilots += 1;
+        lights += vertices.len() as u64;
+        // One closest-hit ray leaves every vertex but the last of a path.
+        path_rays += (vertices.len() as u64).max(1) - 1 + params.paths_per_entry as u64;
+        for light in &vertices {
+            for index in (0..receiver_count).step_by(receiver_stride) {
+                let offset = light.position - receivers.positions[index];
+                pairs += 1;
+                if receivers.normals[index].dot(offset) > 0.0 && light.normal.dot(offset) < 0.0 {
+                    facing += 1;
+                }
+            }
+        }
+    }
+    let own_share = shard.range(params.clusters as usize).len() as f64 / params.clusters as f64;
+    let own_entries = params.entries as f64 * own_share;
+    let lights_per_entry = lights as f64 / pilots.max(1) as f64;
+    let facing_share = facing as f64 / pairs.max(1) as f64;
+    let occlusion = own_entries * lights_per_entry * receiver_count as f64 * facing_share;
+    let closest_hit = own_entries * path_rays as f64 / pilots.max(1) as f64;
+    let panes = estimate_peak_bytes(params, shard, receiver_count as u64);
+    Ok(BakeEstimate {
+        rays: relight_trace::counters::RayCount {
+            closest_hit: closest_hit as u64,
+            occlusion: occlusion as u64,
+        },
+        time_per_ray_time: 1.2,
+        fixed_seconds: 0.0,
+        peak: vec![(
+            format!(
+                "panes ({} x {} texels)",
+                if shard == Shard::WHOLE {
+                    params.clusters as u64 + compressed_rank(params)
+                } else {
+                    shard.range(params.clusters as usize).len() as u64
+                },
+                receiver_count
+            ),
+            panes,
+        )],
+        lower_memory_with: "--set clusters=N, --set rank=N, a lower --lightmap-resolution, or --shard I/N on several machines".into(),
+    })
 }
 
 /// Everything the run time needs.
@@ -131,18 +215,6 @@ impl PrmPart {
         let receivers = &context.atlas.receivers;
         let receiver_count = receivers.len();
         let own_clusters = shard.range(params.clusters as usize);
-        let peak = estimate_peak_bytes(params, shard, receiver_count as u64);
-        if peak > params.max_memory_mib * 1024 * 1024 {
-            return Err(TechniqueError::Other(format!(
-                "PRM panes would need {:.0} MiB ({} clusters x {} texels x 6 bytes, with the compression's basis of {} panes) over the limit of {} MiB: \
-                 lower --set clusters=N, --set rank=N or --lightmap-resolution, bake in shards (--shard I/N), or raise --set max_memory_mib=N",
-                peak as f64 / 1048576.0,
-                own_clusters.len(),
-                receiver_count,
-                if shard == Shard::WHOLE { compressed_rank(params) } else { 0 },
-                params.max_memory_mib
-            )));
-        }
         let scene = &context.scene;
         let total_area = scene.mesh.total_area() as f32;
         progress.start("prm entry points", 1);

@@ -28,7 +28,6 @@
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
-//! | `max_memory_mib` | 2048 | refuse bakes whose panes (with the compression's basis, for a whole bake) would need more; a shard counts its own panes |
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the entry points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
@@ -70,7 +69,10 @@
 //! where a lightmap is wanted anyway: its per-frame cost is K lightmap-sized
 //! multiply-adds, independent of how many bounces the panes contain. Memory
 //! grows as clusters times texels, which rules out large lightmaps with many
-//! clusters.
+//! clusters: [`estimate`] forecasts it (and the shadow rays, from the light
+//! paths of 256 pilot entries) before a bake, and `relight bake` refuses a
+//! bake whose peak would pass `--max-memory` (default: the memory
+//! available), naming the parameters that lower it, or sharding it.
 //!
 //! Known limits and choices:
 //! - The paper sums path vertices from z1 on (equation 3), which would drop
@@ -128,7 +130,7 @@
 mod bake;
 mod runtime;
 
-pub use bake::{estimate_pane_bytes, estimate_peak_bytes, PrmBake, PrmPart};
+pub use bake::{estimate, estimate_pane_bytes, estimate_peak_bytes, PrmBake, PrmPart};
 pub use runtime::{Prm, Selection};
 
 use relight_technique::{
@@ -161,7 +163,6 @@ pub struct PrmParams {
     pub entry_area_samples: u32,
     pub rank: u32,
     pub normal_weight: f32,
-    pub max_memory_mib: u64,
     pub space_rays: u32,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
@@ -179,7 +180,6 @@ impl Default for PrmParams {
             entry_area_samples: 2,
             rank: 128,
             normal_weight: 0.5,
-            max_memory_mib: 2048,
             space_rays: 64,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
@@ -240,6 +240,16 @@ impl TechniqueKind for PrmKind {
     }
     fn bake_parameters(&self) -> &'static [&'static str] {
         &BAKE_PARAMETERS
+    }
+    fn estimate(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+    ) -> Result<Option<relight_technique::BakeEstimate>, TechniqueError> {
+        let params = parse_params("prm", &PrmParams::default(), params)?;
+        params.validate()?;
+        Ok(Some(bake::estimate(context, &params, shard)?))
     }
     fn bake(
         &self,

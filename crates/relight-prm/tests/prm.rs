@@ -249,25 +249,11 @@ fn damaged_bakes_never_panic() {
     );
 }
 
+/// The estimate counts the compression's basis, where a whole bake peaks,
+/// and a shard its own panes twice (held, then encoded): a quarter of the
+/// clusters needs less than half the whole bake's memory.
 #[test]
-fn oversized_bakes_are_refused_with_advice() {
-    let context = context("cornell-box-point", 64);
-    let params = [("max_memory_mib".to_string(), "1".to_string())];
-    let error = PrmKind
-        .bake(&context, &params, &NoProgress)
-        .unwrap_err()
-        .to_string();
-    assert!(
-        error.contains("clusters") && error.contains("max_memory_mib"),
-        "{error}"
-    );
-}
-
-/// The memory guard counts the compression's basis, where a whole bake
-/// peaks, and a shard only its own panes: a limit between the two refuses
-/// the whole bake and lets a quarter of it through.
-#[test]
-fn the_memory_guard_counts_the_compression_and_shards() {
+fn the_estimate_counts_the_compression_and_shards() {
     let receivers = 10_000u64;
     let params = PrmParams::default();
     let whole = relight_prm::estimate_peak_bytes(&params, Shard::WHOLE, receivers);
@@ -277,22 +263,20 @@ fn the_memory_guard_counts_the_compression_and_shards() {
 
     let context = context("cornell-box-point", 64);
     let receivers = context.atlas.receivers.len() as u64;
-    let limit_mib =
-        (relight_prm::estimate_peak_bytes(&params, Shard::WHOLE, receivers) - 1) / 1048576;
-    let params = [("max_memory_mib".to_string(), limit_mib.to_string())];
-    let shard = Shard::new(1, 4).unwrap();
-    assert!(
-        relight_prm::estimate_peak_bytes(&PrmParams::default(), shard, receivers)
-            < limit_mib * 1048576
+    let estimate = PrmKind
+        .estimate(&context, &[], Shard::WHOLE)
+        .unwrap()
+        .expect("PRM bakes");
+    assert_eq!(
+        estimate.peak_bytes(),
+        relight_prm::estimate_peak_bytes(&params, Shard::WHOLE, receivers)
     );
-    let error = PrmKind
-        .bake(&context, &params, &NoProgress)
-        .unwrap_err()
-        .to_string();
-    assert!(error.contains("--shard I/N"), "{error}");
-    assert!(PrmKind
-        .bake_shard(&context, &params, shard, &NoProgress)
-        .is_ok());
+    assert!(
+        estimate.lower_memory_with.contains("clusters")
+            && estimate.lower_memory_with.contains("--shard"),
+        "{}",
+        estimate.lower_memory_with
+    );
 }
 
 #[test]

@@ -365,6 +365,15 @@ impl TechniqueKind for SrpKind {
     fn bake_parameters(&self) -> &'static [&'static str] {
         &BAKE_PARAMETERS
     }
+    fn estimate(
+        &self,
+        context: &SceneContext,
+        params: &[(String, String)],
+        shard: Shard,
+    ) -> Result<Option<relight_technique::BakeEstimate>, TechniqueError> {
+        let params = SrpParams::from_scene(context, params)?;
+        Ok(Some(bake::estimate(context, &params, shard)))
+    }
     fn bake(
         &self,
         context: &SceneContext,

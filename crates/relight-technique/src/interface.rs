@@ -162,6 +162,18 @@ pub trait TechniqueKind: Sync {
         &[]
     }
 
+    /// What the bake of `shard` (all of it: [`crate::Shard::WHOLE`]) will
+    /// cost, from the scene's counts and the parameters, cheaply enough to
+    /// tell before every bake; `None` for kinds without a bake.
+    fn estimate(
+        &self,
+        _context: &SceneContext,
+        _params: &[(String, String)],
+        _shard: crate::Shard,
+    ) -> Result<Option<crate::BakeEstimate>, TechniqueError> {
+        Ok(None)
+    }
+
     /// Precomputes the bake payload (technique-specific bytes).
     fn bake(
         &self,

@@ -11,6 +11,8 @@
 //!
 //! A bake may also be made in [`Shard`]s, separately and anywhere, which
 //! [`TechniqueKind::merge_shards`] joins into the bytes of a whole bake.
+//! Before any bake, [`TechniqueKind::estimate`] forecasts its rays and peak
+//! memory from the scene's counts and the parameters.
 //!
 //! The built-in kinds are `direct` (no indirect light, the lower bound) and
 //! `reference` (path-traced per-receiver indirect light, the ground truth).
@@ -18,6 +20,7 @@
 mod bakefile;
 mod builtin;
 mod context;
+mod estimate;
 mod final_gather;
 mod gather;
 mod interface;
@@ -34,6 +37,7 @@ pub use builtin::{
     ReferenceLightmap, ReferenceParams,
 };
 pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
+pub use estimate::{available_bytes, format_bytes, parse_size, resident_bytes, BakeEstimate};
 pub use final_gather::{FinalGather, FinalGatherSettings, GatherReach};
 pub use gather::SurfaceGather;
 pub use interface::*;
