@@ -351,6 +351,18 @@ fn release_freed_memory() {
     }
 }
 
+/// Seconds to a precision a forecast has: tenths under ten seconds, then
+/// whole seconds, then minutes.
+fn format_seconds(seconds: f64) -> String {
+    if seconds < 10.0 {
+        format!("{seconds:.1} s")
+    } else if seconds < 600.0 {
+        format!("{seconds:.0} s")
+    } else {
+        format!("{:.0} min", seconds / 60.0)
+    }
+}
+
 /// Prints a bake's forecast (time at the scene's ray `rates`, peak memory:
 /// the process now, with the scene loaded, plus what the bake will hold)
 /// and refuses the bake when that peak is over `max_memory` (default: the
@@ -371,14 +383,20 @@ fn check_estimate(
         .map(|(what, bytes)| format!("{what} {}", format_bytes(*bytes)))
         .collect();
     say!(
-        "estimate        {:.0} s and {} at peak: the loaded scene {} + {}; {:.1} M closest-hit + {:.1} M occlusion rays",
-        forecast.seconds(rates.0, rates.1),
+        "estimate        {} and {} at peak: the loaded scene {} + {}; {:.1} M closest-hit + {:.1} M occlusion rays",
+        format_seconds(forecast.seconds(rates.0, rates.1)),
         format_bytes(peak),
         format_bytes(scene_bytes),
         held.join(" + "),
         forecast.rays.closest_hit as f64 / 1e6,
         forecast.rays.occlusion as f64 / 1e6,
     );
+    if let Some(rate) = forecast.occlusion_rate {
+        say!(
+            "                its occlusion rays at {:.2} Mrays/s, timed on a sample of them",
+            rate / 1e6
+        );
+    }
     let (limit, source) = match max_memory {
         Some(limit) => (Some(limit), "--max-memory"),
         None => (

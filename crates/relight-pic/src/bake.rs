@@ -838,6 +838,7 @@ pub fn estimate(context: &SceneContext, params: &PicParams, shard: Shard) -> Bak
             occlusion: occlusion as u64,
         },
         time_per_ray_time: 1.6,
+        occlusion_rate: None,
         fixed_seconds,
         peak: vec![
             (format!("links ({own_caches} caches x {links})"), links_held),

@@ -1308,6 +1308,7 @@ pub fn estimate(context: &SceneContext, params: &SrpParams, shard: Shard) -> Bak
             occlusion: (samples * nearby * OCCLUSION_PER_NEARBY + placement) as u64,
         },
         time_per_ray_time: 1.1 + 0.008 * coefficients,
+        occlusion_rate: None,
         fixed_seconds: 0.0,
         peak: vec![
             ("compressed clusters".into(), held_clusters as u64),

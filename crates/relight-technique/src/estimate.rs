@@ -15,6 +15,10 @@ pub struct BakeEstimate {
     /// rates: the work between rays (sampling, clustering, compression,
     /// allocation), from this technique's measured bakes.
     pub time_per_ray_time: f64,
+    /// Occlusion rays per second the technique measured on a sample of its
+    /// own occlusion rays, where it can make them without baking; the
+    /// scene's generic rate otherwise.
+    pub occlusion_rate: Option<f64>,
     /// Seconds the bake spends in work that does not grow with its rays.
     pub fixed_seconds: f64,
     /// The most bytes the bake holds at once on top of the loaded scene,
@@ -34,7 +38,7 @@ impl BakeEstimate {
     /// occlusion rays at these rates (rays per second).
     pub fn seconds(&self, closest_hit_rate: f64, occlusion_rate: f64) -> f64 {
         let ray_seconds = self.rays.closest_hit as f64 / closest_hit_rate.max(1.0)
-            + self.rays.occlusion as f64 / occlusion_rate.max(1.0);
+            + self.rays.occlusion as f64 / self.occlusion_rate.unwrap_or(occlusion_rate).max(1.0);
         ray_seconds * self.time_per_ray_time + self.fixed_seconds
     }
 }
@@ -171,6 +175,7 @@ mod tests {
                 occlusion: 6_000_000,
             },
             time_per_ray_time: 1.5,
+            occlusion_rate: None,
             fixed_seconds: 0.5,
             peak: vec![("panes".into(), 300), ("scratch".into(), 20)],
             lower_memory_with: String::new(),
