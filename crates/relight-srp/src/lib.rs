@@ -67,6 +67,14 @@
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
+//! - The bake's estimate (`relight bake --estimate`, printed before every
+//!   bake) counts every receiver's samples times its nearby probes, and for
+//!   memory the compressed clusters three times over (held, assembled,
+//!   encoded) and each worker a whole cluster's matrix twelve times over
+//!   (its f64 copy, the SVD, the halves, the allocator's arenas). Peaks of
+//!   identical bakes differ by up to a fifth as those arenas fill (the 300k
+//!   atrium: 286 and 357 MiB), and small scenes, whose clusters see fewer
+//!   probes, peak below the estimate (two-rooms: 115 of 205 MiB).
 //! - A fixed count of principal vectors per cluster is too few where a
 //!   cluster's receivers see many probes at order 7 (the corridor's
 //!   clusters kept 89.6 % of their squared transport, the box's 8x8-tile
