@@ -829,9 +829,9 @@ pub fn estimate(context: &SceneContext, params: &PicParams, shard: Shard) -> Bak
     // The agglomerative clustering's time grows as n^1.5 on these scenes
     // (Sponza, 2 threads: 0.4 s at 32k surfels, 3.1 s at 128k), placement
     // and surfels about as much again at 32k.
-    let surfel_thousands = params.surfels as f64 / 32768.0;
+    let surfels_over_default = params.surfels as f64 / 32768.0;
     let threads = rayon::current_num_threads() as f64;
-    let fixed_seconds = 2.0 * 0.8 * surfel_thousands.powf(1.5) / threads;
+    let fixed_seconds = 2.0 * 0.8 * surfels_over_default.powf(1.5) / threads;
     BakeEstimate {
         rays: relight_trace::counters::RayCount {
             closest_hit: 0,

@@ -877,6 +877,18 @@ pub const MAX_RADIANCE_BANDS: usize = 5;
 /// Radiance transport for every receiver on a material with a Phong
 /// exponent, clustered and compressed cluster by cluster like the
 /// irradiance transport.
+/// The receivers on materials with a Phong exponent, which the radiance
+/// transport serves, in receiver order.
+fn glossy_receivers(context: &SceneContext) -> Vec<u32> {
+    let receivers = &context.atlas.receivers;
+    (0..receivers.len() as u32)
+        .filter(|&receiver| {
+            let triangle = receivers.triangles[receiver as usize];
+            context.scene.material_of(triangle as usize).phong_exponent > 1.0
+        })
+        .collect()
+}
+
 fn radiance_transport(
     context: &SceneContext,
     probes: &[Vec3],
@@ -887,12 +899,7 @@ fn radiance_transport(
     progress: &dyn Progress,
 ) -> PartClusters {
     let receivers = &context.atlas.receivers;
-    let glossy: Vec<u32> = (0..receivers.len() as u32)
-        .filter(|&receiver| {
-            let triangle = receivers.triangles[receiver as usize];
-            context.scene.material_of(triangle as usize).phong_exponent > 1.0
-        })
-        .collect();
+    let glossy = glossy_receivers(context);
     let bands = params.radiance_order as usize + 1;
     let outputs = bands * bands;
     let coefficients = sh::coefficient_count(settings.bands);
@@ -1277,12 +1284,7 @@ pub fn estimate(context: &SceneContext, params: &SrpParams, shard: Shard) -> Bak
     };
     let nearby = params.max_nearby.min(probes).max(1) as f64;
     let glossy = if params.radiance_order > 0 {
-        let receivers = &context.atlas.receivers;
-        receivers
-            .triangles
-            .iter()
-            .filter(|&&triangle| context.scene.material_of(triangle as usize).phong_exponent > 1.0)
-            .count() as f64
+        glossy_receivers(context).len() as f64
     } else {
         0.0
     };
