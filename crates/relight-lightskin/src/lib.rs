@@ -141,7 +141,7 @@ use dynamic::{DynamicMesh, DynamicWorld};
 use gather::Sums;
 use geometry::Geometry;
 use glam::Vec3;
-use points::{Anchor, Interpolation, NEIGHBOURS};
+use points::{Anchor, Interpolation};
 use rayon::prelude::*;
 use relight_core::Rgb;
 use relight_scene::{Light, Mesh, Scene};
@@ -345,17 +345,8 @@ impl Vpls {
             .zip(self.position.par_iter_mut())
             .enumerate()
             .for_each(|(target, (power, position))| {
-                let mut power_sum = Rgb::ZERO;
-                let mut position_sum = Vec3::ZERO;
-                let neighbours = &interpolation.neighbours[target];
-                let weights = &interpolation.weights[target];
-                for slot in 0..NEIGHBOURS {
-                    let source = neighbours[slot] as usize;
-                    power_sum += sources.power[source] * weights[slot];
-                    position_sum += sources.position[source] * weights[slot];
-                }
-                *power = power_sum;
-                *position = position_sum;
+                (*power, *position) =
+                    interpolation.blend(target, &sources.power, &sources.position);
             });
     }
 }
@@ -491,7 +482,8 @@ pub struct LightSkin {
     point_diffuse: Vpls,
     point_glossy: Vpls,
     texel_interpolation: Interpolation,
-    texel_diffuse: Vpls,
+    /// The texels' interpolated glossy lights (empty without glossy
+    /// materials); their diffuse lights are evaluated as they are blended.
     texel_glossy: Vpls,
     /// The receivers' irradiance (final gather included) as a dilated
     /// lightmap, which shading samples; and the texels' interpolated
@@ -588,20 +580,14 @@ impl LightSkin {
                 |_| 0.0,
             );
             let normals = vertex_normals(&mesh.mesh);
-            let mut lists = Interpolation::build(
+            let lists = Interpolation::build(
                 &mesh.mesh.positions,
                 &normals,
                 &sparse.positions[first..],
                 &sparse.normals[first..],
                 area_per_point.sqrt(),
             );
-            for neighbours in &mut lists.neighbours {
-                for index in neighbours.iter_mut() {
-                    *index += first as u32;
-                }
-            }
-            vertex_interpolation.neighbours.extend(lists.neighbours);
-            vertex_interpolation.weights.extend(lists.weights);
+            vertex_interpolation.append(lists, first as u32);
             vertex_normals_local.extend(normals);
             sparse.dynamic_anchors.push((first, anchors));
         }
@@ -641,7 +627,6 @@ impl LightSkin {
             point_diffuse: Vpls::zeroed(point_count),
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,
-            texel_diffuse: Vpls::zeroed(receiver_count),
             texel_glossy: Vpls::zeroed(if glossy { receiver_count } else { 0 }),
             irradiance_map: vec![Rgb::ZERO; map_size],
             glossy_power_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
@@ -931,23 +916,24 @@ impl LightSkin {
 
     fn interpolate(&mut self) {
         let atlas = &self.context.atlas;
-        self.texel_diffuse
-            .interpolate_from(&self.point_diffuse, &self.texel_interpolation);
         if !self.glossy_sums.is_empty() {
             self.texel_glossy
                 .interpolate_from(&self.point_glossy, &self.texel_interpolation);
             atlas.scatter_into(&self.texel_glossy.power, &mut self.glossy_power_map);
             atlas.scatter_into(&self.texel_glossy.position, &mut self.glossy_position_map);
         }
+        // Each texel's light is blended and evaluated in one pass: the
+        // blended lights are not stored, since nothing else reads them.
         let receivers = &atlas.receivers;
-        let texel_diffuse = &self.texel_diffuse;
+        let (interpolation, sources) = (&self.texel_interpolation, &self.point_diffuse);
         self.receiver_irradiance
             .par_iter_mut()
             .enumerate()
             .for_each(|(index, irradiance)| {
+                let (power, light) = interpolation.blend(index, &sources.power, &sources.position);
                 *irradiance = phong_diffuse(
-                    texel_diffuse.power[index],
-                    texel_diffuse.position[index],
+                    power,
+                    light,
                     receivers.positions[index],
                     receivers.normals[index],
                 );
@@ -1240,10 +1226,7 @@ impl Technique for LightSkin {
                 "neighbour lists",
                 self.texel_interpolation.memory_bytes() + self.vertex_interpolation.memory_bytes(),
             ),
-            MemoryEntry::new(
-                "texel lights",
-                self.texel_diffuse.memory_bytes() + self.texel_glossy.memory_bytes(),
-            ),
+            MemoryEntry::new("texel glossy lights", self.texel_glossy.memory_bytes()),
             MemoryEntry::new(
                 "light maps",
                 (self.irradiance_map.len()

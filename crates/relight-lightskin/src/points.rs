@@ -10,6 +10,7 @@
 
 use glam::{Vec2, Vec3};
 use relight_core::sampling::{radical_inverse, uniform_triangle};
+use relight_core::Rgb;
 use relight_scene::{AreaTable, Mesh};
 use std::collections::HashMap;
 
@@ -266,11 +267,52 @@ impl Nearest {
 }
 
 /// Fixed neighbours and normalised weights of interpolated targets
-/// (texels or vertices), struct of arrays.
-#[derive(Clone, Debug, Default)]
+/// (texels or vertices), struct of arrays, compact because the texels'
+/// lists are read whole every frame: 16-bit point indices while there are
+/// at most 65536 points, and weights in 16-bit fixed point (1/65535ths,
+/// summing to exactly 65535), 32 bytes a target instead of 64. On Sponza
+/// (378k texels) that is 12 MiB a frame instead of 24 MiB.
+#[derive(Clone, Debug)]
 pub struct Interpolation {
-    pub neighbours: Vec<[u32; NEIGHBOURS]>,
-    pub weights: Vec<[f32; NEIGHBOURS]>,
+    neighbours: Neighbours,
+    weights: Vec<[u16; NEIGHBOURS]>,
+}
+
+#[derive(Clone, Debug)]
+enum Neighbours {
+    Narrow(Vec<[u16; NEIGHBOURS]>),
+    Wide(Vec<[u32; NEIGHBOURS]>),
+}
+
+impl Default for Interpolation {
+    fn default() -> Self {
+        Self {
+            neighbours: Neighbours::Narrow(Vec::new()),
+            weights: Vec::new(),
+        }
+    }
+}
+
+/// Weights scaled to 16-bit fixed point summing to 65535 (the remainder
+/// goes to the heaviest), or all zero when they are.
+fn quantise_weights(weights: &[f32; NEIGHBOURS]) -> [u16; NEIGHBOURS] {
+    let mut fixed = [0u16; NEIGHBOURS];
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return fixed;
+    }
+    let heaviest = (0..NEIGHBOURS)
+        .max_by(|&a, &b| weights[a].total_cmp(&weights[b]).then(b.cmp(&a)))
+        .unwrap_or(0);
+    let mut assigned = 0u32;
+    for slot in 0..NEIGHBOURS {
+        if slot != heaviest {
+            fixed[slot] = (weights[slot] / total * 65535.0).round() as u16;
+            assigned += fixed[slot] as u32;
+        }
+    }
+    fixed[heaviest] = 65535u32.saturating_sub(assigned) as u16;
+    fixed
 }
 
 impl Interpolation {
@@ -283,7 +325,11 @@ impl Interpolation {
     }
 
     pub fn memory_bytes(&self) -> usize {
-        self.len() * NEIGHBOURS * 8
+        let index_bytes = match &self.neighbours {
+            Neighbours::Narrow(_) => 2,
+            Neighbours::Wide(_) => 4,
+        };
+        self.len() * NEIGHBOURS * (index_bytes + 2)
     }
 
     /// Builds the lists for `targets` against `points` (same space).
@@ -296,18 +342,83 @@ impl Interpolation {
     ) -> Self {
         use rayon::prelude::*;
         let grid = PointGrid::new(point_positions, spacing.max(1e-6) * 2.0);
-        let (neighbours, weights) = target_positions
-            .par_iter()
-            .zip(target_normals)
-            .map_init(Nearest::default, |found, (&position, &normal)| {
-                grid.nearest_facing(position, normal, point_normals, found);
-                found.weights(normal, point_normals)
-            })
-            .unzip();
+        let (neighbours, weights): (Vec<[u32; NEIGHBOURS]>, Vec<[u16; NEIGHBOURS]>) =
+            target_positions
+                .par_iter()
+                .zip(target_normals)
+                .map_init(Nearest::default, |found, (&position, &normal)| {
+                    grid.nearest_facing(position, normal, point_normals, found);
+                    let (indices, weights) = found.weights(normal, point_normals);
+                    (indices, quantise_weights(&weights))
+                })
+                .unzip();
+        let neighbours = if point_positions.len() <= 1 << 16 {
+            Neighbours::Narrow(
+                neighbours
+                    .into_iter()
+                    .map(|list| list.map(|index| index as u16))
+                    .collect(),
+            )
+        } else {
+            Neighbours::Wide(neighbours)
+        };
         Self {
             neighbours,
             weights,
         }
+    }
+
+    /// Appends `other`'s targets, whose point indices count from `first`.
+    pub fn append(&mut self, other: Interpolation, first: u32) {
+        let mut wide = self.wide_lists();
+        wide.extend(
+            other
+                .wide_lists()
+                .into_iter()
+                .map(|list| list.map(|index| index + first)),
+        );
+        let fits = wide.iter().flatten().all(|&index| index < 1 << 16);
+        self.neighbours = if fits {
+            Neighbours::Narrow(wide.into_iter().map(|l| l.map(|i| i as u16)).collect())
+        } else {
+            Neighbours::Wide(wide)
+        };
+        self.weights.extend(other.weights);
+    }
+
+    fn wide_lists(&self) -> Vec<[u32; NEIGHBOURS]> {
+        match &self.neighbours {
+            Neighbours::Narrow(lists) => lists.iter().map(|l| l.map(u32::from)).collect(),
+            Neighbours::Wide(lists) => lists.clone(),
+        }
+    }
+
+    /// Equation 13 at one target: its neighbours' powers and light
+    /// positions, blended by its weights.
+    #[inline]
+    pub fn blend(&self, target: usize, powers: &[Rgb], positions: &[Vec3]) -> (Rgb, Vec3) {
+        const SCALE: f32 = 1.0 / 65535.0;
+        let weights = &self.weights[target];
+        let mut power = Rgb::ZERO;
+        let mut position = Vec3::ZERO;
+        let mut add = |slot: usize, source: usize| {
+            let weight = weights[slot] as f32 * SCALE;
+            power += powers[source] * weight;
+            position += positions[source] * weight;
+        };
+        match &self.neighbours {
+            Neighbours::Narrow(lists) => {
+                for (slot, &source) in lists[target].iter().enumerate() {
+                    add(slot, source as usize);
+                }
+            }
+            Neighbours::Wide(lists) => {
+                for (slot, &source) in lists[target].iter().enumerate() {
+                    add(slot, source as usize);
+                }
+            }
+        }
+        (power, position)
     }
 }
 
