@@ -1,5 +1,6 @@
 //! The PRM bake: entry points, their clustering, light paths and panes.
 
+use crate::panes::PanePoints;
 use crate::PrmParams;
 use glam::{Vec2, Vec3};
 use half::f16;
@@ -16,7 +17,7 @@ use relight_technique::{
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
-const PAYLOAD_VERSION: u32 = 4;
+const PAYLOAD_VERSION: u32 = 5;
 
 /// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
 pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
@@ -81,8 +82,9 @@ pub fn estimate(
     params: &PrmParams,
     shard: Shard,
 ) -> Result<BakeEstimate, TechniqueError> {
-    let receivers = &context.atlas.receivers;
-    let receiver_count = receivers.len();
+    let pane_points = PanePoints::select(context, params.pane_spacing(&context.atlas));
+    let targets = PaneTargets::new(context, &pane_points);
+    let receiver_count = targets.positions.len();
     let entries = sample_entries(&context.scene, params.entries as usize)?;
     let area_per_entry = context.scene.mesh.total_area() as f32 / params.entries as f32;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
@@ -104,13 +106,12 @@ pub fn estimate(
         path_rays += (vertices.len() as u64).max(1) - 1 + params.paths_per_entry as u64;
         for light in &vertices {
             for index in (0..receiver_count).step_by(receiver_stride) {
-                let offset = light.position - receivers.positions[index];
+                let offset = light.position - targets.positions[index];
                 pairs += 1;
-                if receivers.normals[index].dot(offset) > 0.0 && light.normal.dot(offset) < 0.0 {
+                if targets.normals[index].dot(offset) > 0.0 && light.normal.dot(offset) < 0.0 {
                     facing += 1;
                     if facing % TIMED_EVERY == 0 && sample_rays.len() < TIMED_RAYS {
-                        let origin =
-                            receivers.positions[index] + receivers.normals[index] * epsilon;
+                        let origin = targets.positions[index] + targets.normals[index] * epsilon;
                         sample_rays.push(Ray {
                             origin,
                             direction: light.position + light.normal * epsilon - origin,
@@ -159,7 +160,7 @@ pub fn estimate(
         fixed_seconds: 0.0,
         peak: vec![(
             format!(
-                "panes ({} x {} texels)",
+                "panes ({} x {} pane points)",
                 if shard == Shard::WHOLE {
                     params.clusters as u64 + compressed_rank(params)
                 } else {
@@ -169,7 +170,7 @@ pub fn estimate(
             ),
             panes,
         )],
-        lower_memory_with: "--set clusters=N, --set rank=N, a lower --lightmap-resolution, or --shard I/N on several machines".into(),
+        lower_memory_with: "--set clusters=N, --set rank=N, a lower --set pane_resolution=N, or --shard I/N on several machines".into(),
     })
 }
 
@@ -177,6 +178,8 @@ pub fn estimate(
 #[derive(Clone, Debug, PartialEq)]
 pub struct PrmBake {
     pub receiver_count: usize,
+    /// Where the panes hold light (see [`crate::panes`]).
+    pub pane_points: PanePoints,
     pub entry_positions: Vec<Vec3>,
     pub entry_normals: Vec<Vec3>,
     /// Cluster of each entry point.
@@ -199,7 +202,7 @@ pub struct PrmBake {
     /// Fraction of the panes' energy (squared norm) the basis keeps; 1
     /// without compression.
     pub captured_energy: f32,
-    /// Pane-major: `panes[(pane * receivers + receiver) * 3 + channel]`.
+    /// Pane-major: `panes[(pane * pane points + point) * 3 + channel]`.
     /// Without compression one pane per cluster, the indirect irradiance per
     /// unit irradiance at its entries; with compression the `rank` basis
     /// panes.
@@ -224,6 +227,7 @@ struct VirtualLight {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PrmPart {
     pub receiver_count: usize,
+    pub pane_points: PanePoints,
     pub cluster_count: usize,
     /// The `rank` parameter the merge compresses to.
     pub requested_rank: usize,
@@ -239,7 +243,7 @@ pub struct PrmPart {
 }
 
 /// Shard payloads carry their own version beside the bake's.
-const PART_VERSION: u32 = 1;
+const PART_VERSION: u32 = 2;
 
 impl PrmPart {
     /// Bakes the panes of `shard`'s clusters.
@@ -249,11 +253,14 @@ impl PrmPart {
         shard: Shard,
         progress: &dyn Progress,
     ) -> Result<Self, TechniqueError> {
-        let receivers = &context.atlas.receivers;
-        let receiver_count = receivers.len();
+        let receiver_count = context.atlas.receivers.len();
         let own_clusters = shard.range(params.clusters as usize);
         let scene = &context.scene;
         let total_area = scene.mesh.total_area() as f32;
+        progress.start("prm pane points", 1);
+        let pane_points = PanePoints::select(context, params.pane_spacing(&context.atlas));
+        let targets = PaneTargets::new(context, &pane_points);
+        progress.finish();
         progress.start("prm entry points", 1);
         let entries = sample_entries(scene, params.entries as usize)?;
         let (lo, hi) = scene.mesh.bounds();
@@ -277,14 +284,15 @@ impl PrmPart {
         }
         let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
         progress.start("prm panes", own_clusters.len() as u64);
-        let mut panes = vec![f16::ZERO; own_clusters.len() * receiver_count * 3];
+        let pane_length = targets.positions.len();
+        let mut panes = vec![f16::ZERO; own_clusters.len() * pane_length * 3];
         // Each entry's share of its cluster's weight: the total luminance
         // of its own pane over the cluster pane's.
         let shares_per_cluster: Vec<Vec<f32>> = panes
-            .par_chunks_mut(receiver_count * 3)
+            .par_chunks_mut(pane_length * 3)
             .zip(members[own_clusters.clone()].par_iter())
             .map(|(pane_out, cluster_members)| {
-                let mut pane = vec![Rgb::ZERO; receiver_count];
+                let mut pane = vec![Rgb::ZERO; pane_length];
                 let mut own_totals: Vec<f64> = Vec::with_capacity(cluster_members.len());
                 for &entry in cluster_members {
                     let lights = light_path_vertices(
@@ -299,7 +307,14 @@ impl PrmPart {
                         lights
                             .iter()
                             .map(|light| {
-                                gather(context, light, disc_radius_squared, epsilon, &mut pane)
+                                gather(
+                                    context,
+                                    &targets,
+                                    light,
+                                    disc_radius_squared,
+                                    epsilon,
+                                    &mut pane,
+                                )
                             })
                             .sum(),
                     );
@@ -324,8 +339,10 @@ impl PrmPart {
             })
             .collect();
         progress.finish();
+        drop(targets);
         Ok(Self {
             receiver_count,
+            pane_points,
             cluster_count: params.clusters as usize,
             requested_rank: params.rank as usize,
             entry_positions: entries.positions,
@@ -339,13 +356,20 @@ impl PrmPart {
 
     /// Clusters whose panes this part holds.
     pub fn cluster_panes(&self) -> usize {
-        self.panes.len() / (self.receiver_count * 3).max(1)
+        self.panes.len() / (self.pane_length() * 3).max(1)
+    }
+
+    /// Values per pane.
+    pub fn pane_length(&self) -> usize {
+        self.pane_points.count(self.receiver_count)
     }
 
     pub fn encode(&self) -> Vec<u8> {
         let mut writer = PayloadWriter::with_capacity(self.panes.len() * 2 + 64);
         writer.u32(PART_VERSION);
         writer.u32(self.receiver_count as u32);
+        writer.u32s(&self.pane_points.receivers);
+        writer.f32(self.pane_points.spacing);
         writer.u32(self.cluster_count as u32);
         writer.u32(self.requested_rank as u32);
         writer.vectors(&self.entry_positions);
@@ -366,6 +390,10 @@ impl PrmPart {
             "bake the shards with this relight",
         )?;
         let receiver_count = reader.u32()? as usize;
+        let pane_points = PanePoints {
+            receivers: reader.u32s()?,
+            spacing: reader.f32()?,
+        };
         let cluster_count = reader.u32()? as usize;
         let requested_rank = reader.u32()? as usize;
         let entry_positions = reader.vectors()?;
@@ -377,6 +405,7 @@ impl PrmPart {
         reader.end()?;
         let part = Self {
             receiver_count,
+            pane_points,
             cluster_count,
             requested_rank,
             entry_positions,
@@ -394,7 +423,8 @@ impl PrmPart {
                 .iter()
                 .any(|&cluster| cluster as usize >= cluster_count)
             || part.receiver_count == 0
-            || !part.panes.len().is_multiple_of(receiver_count * 3)
+            || !part.pane_points.is_valid(receiver_count)
+            || !part.panes.len().is_multiple_of(part.pane_length() * 3)
             || part.first_cluster + part.cluster_panes() > cluster_count
         {
             return Err(reader.corrupt("a shard's sizes disagree"));
@@ -413,6 +443,7 @@ impl BakePart for PrmPart {
     /// The same entry points for the same lightmap and compression.
     fn same_setup(&self, other: &Self) -> bool {
         self.receiver_count == other.receiver_count
+            && self.pane_points == other.pane_points
             && self.cluster_count == other.cluster_count
             && self.requested_rank == other.requested_rank
             && self.entry_positions == other.entry_positions
@@ -449,6 +480,7 @@ impl PrmBake {
         let disagree = |message: &str| shards_disagree("prm", message);
         let PrmPart {
             receiver_count,
+            pane_points,
             cluster_count,
             requested_rank,
             entry_positions,
@@ -458,8 +490,9 @@ impl PrmBake {
             mut panes,
             ..
         } = join_parts(parts)?;
+        let pane_length = pane_points.count(receiver_count);
         let expected = cluster_count
-            .checked_mul(receiver_count)
+            .checked_mul(pane_length)
             .and_then(|values| values.checked_mul(3));
         if expected != Some(panes.len()) || shares.len() != entry_clusters.len() {
             return Err(disagree("leave clusters without panes"));
@@ -478,7 +511,7 @@ impl PrmBake {
                 let components = relight_core::pca::principal_components(
                     &panes,
                     cluster_count,
-                    receiver_count * 3,
+                    pane_length * 3,
                     requested_rank,
                 )
                 .map_err(|error| TechniqueError::Other(format!("PRM pane compression: {error}")))?;
@@ -494,6 +527,7 @@ impl PrmBake {
             };
         Ok(Self {
             receiver_count,
+            pane_points,
             entry_positions,
             entry_normals,
             entry_clusters,
@@ -504,6 +538,11 @@ impl PrmBake {
             captured_energy,
             panes,
         })
+    }
+
+    /// Values per pane.
+    pub fn pane_length(&self) -> usize {
+        self.pane_points.count(self.receiver_count)
     }
 
     /// Entry points in each cluster.
@@ -545,12 +584,20 @@ impl PrmBake {
         let lights = light_path_vertices(context, &entries, 0, area, &params, epsilon);
         let disc_radius_squared = area / std::f32::consts::PI;
         let receivers = context.atlas.receivers.len();
+        let targets = PaneTargets::new(context, &PanePoints::every_receiver());
         // Gather per virtual light in parallel, then add in light order.
         let partial: Vec<Vec<Rgb>> = lights
             .par_iter()
             .map(|light| {
                 let mut pane = vec![Rgb::ZERO; receivers];
-                let _ = gather(context, light, disc_radius_squared, epsilon, &mut pane);
+                let _ = gather(
+                    context,
+                    &targets,
+                    light,
+                    disc_radius_squared,
+                    epsilon,
+                    &mut pane,
+                );
                 pane
             })
             .collect();
@@ -571,6 +618,11 @@ impl PrmBake {
             |bytes: &mut Vec<u8>, value: u32| bytes.extend_from_slice(&value.to_le_bytes());
         put_u32(&mut bytes, PAYLOAD_VERSION);
         put_u32(&mut bytes, self.receiver_count as u32);
+        put_u32(&mut bytes, self.pane_points.receivers.len() as u32);
+        for &receiver in &self.pane_points.receivers {
+            put_u32(&mut bytes, receiver);
+        }
+        bytes.extend_from_slice(&self.pane_points.spacing.to_le_bytes());
         put_u32(&mut bytes, self.entry_positions.len() as u32);
         put_u32(&mut bytes, self.cluster_count as u32);
         put_u32(&mut bytes, self.rank as u32);
@@ -608,6 +660,20 @@ impl PrmBake {
             )));
         }
         let receiver_count = reader.u32()? as usize;
+        let point_count = reader.u32()? as usize;
+        if point_count as u128 * 4 > (bytes.len() - reader.cursor) as u128 {
+            return Err(corrupt("payload shorter than its pane points say"));
+        }
+        let pane_points = PanePoints {
+            receivers: (0..point_count)
+                .map(|_| reader.u32())
+                .collect::<Result<Vec<_>, _>>()?,
+            spacing: reader.f32()?,
+        };
+        if !pane_points.is_valid(receiver_count) {
+            return Err(corrupt("pane points are not distinct receivers in order"));
+        }
+        let pane_length = pane_points.count(receiver_count);
         let entry_count = reader.u32()? as usize;
         let cluster_count = reader.u32()? as usize;
         let rank = reader.u32()? as usize;
@@ -618,7 +684,7 @@ impl PrmBake {
         let stored_panes = if rank > 0 { rank } else { cluster_count };
         // Every size is checked against the bytes left before allocating.
         let pane_values = stored_panes
-            .checked_mul(receiver_count)
+            .checked_mul(pane_length)
             .and_then(|count| count.checked_mul(3))
             .ok_or_else(|| corrupt("pane size overflows"))?;
         let needed = entry_count as u128 * (12 * 2 + 4 + 4)
@@ -667,6 +733,7 @@ impl PrmBake {
         }
         Ok(Self {
             receiver_count,
+            pane_points,
             entry_positions,
             entry_normals,
             entry_clusters,
@@ -944,22 +1011,51 @@ fn light_path_vertices(
     lights
 }
 
-/// Adds one virtual light's irradiance at every receiver (shadow rays),
+/// Positions and normals of the pane points, contiguous for the gather.
+struct PaneTargets<'a> {
+    positions: std::borrow::Cow<'a, [Vec3]>,
+    normals: std::borrow::Cow<'a, [Vec3]>,
+}
+
+impl<'a> PaneTargets<'a> {
+    fn new(context: &'a SceneContext, points: &PanePoints) -> Self {
+        let receivers = &context.atlas.receivers;
+        if points.is_every_receiver() {
+            return Self {
+                positions: (&receivers.positions[..]).into(),
+                normals: (&receivers.normals[..]).into(),
+            };
+        }
+        let pick = |values: &[Vec3]| -> Vec<Vec3> {
+            points
+                .receivers
+                .iter()
+                .map(|&receiver| values[receiver as usize])
+                .collect()
+        };
+        Self {
+            positions: pick(&receivers.positions).into(),
+            normals: pick(&receivers.normals).into(),
+        }
+    }
+}
+
+/// Adds one virtual light's irradiance at every pane point (shadow rays),
 /// with the disc guard: E = flux / pi * cos_l cos_x / (d^2 + r^2), and
 /// returns the luminance it added over all receivers.
 fn gather(
     context: &SceneContext,
+    targets: &PaneTargets,
     light: &VirtualLight,
     disc_radius_squared: f32,
     epsilon: f32,
     pane: &mut [Rgb],
 ) -> f64 {
-    let receivers = &context.atlas.receivers;
     let origin = light.position + light.normal * epsilon;
     let mut added = 0.0f64;
     for (index, value) in pane.iter_mut().enumerate() {
-        let position = receivers.positions[index];
-        let normal = receivers.normals[index];
+        let position = targets.positions[index];
+        let normal = targets.normals[index];
         let offset = origin - position;
         let distance_squared = offset.length_squared();
         let cosine_receiver = normal.dot(offset);

@@ -25,6 +25,8 @@
 //! | `rank` | 128 | basis panes kept by compression; 0, or at least `clusters`, = store every cluster's pane |
 //! | `top_k` | 0 | clusters summed per frame (the paper: 32); 0 = all |
 //! | `selection` | `"contribution"` | how the top K are ranked: `"contribution"` (weight times the pane's total luminance) or `"weight"` (mean entry irradiance alone, as the paper does) |
+//! | `pane_resolution` | 256 | pane points as far apart as the texels of a lightmap this many texels on its longer side (the paper's panes: 256 x 256); the light is upsampled to the scene's lightmap each frame; 0 = a pane value at every lightmap texel |
+//! | `pane_texel_size` | 0 | pane point spacing in metres; overrides `pane_resolution` when above 0 |
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
@@ -128,6 +130,7 @@
 //!   direct light alone (the lightmap holds front sides).
 
 mod bake;
+pub mod panes;
 mod runtime;
 
 pub use bake::{estimate, estimate_pane_bytes, estimate_peak_bytes, PrmBake, PrmPart};
@@ -142,13 +145,15 @@ use std::sync::Arc;
 
 /// The parameters only the bake reads; the others act at run time, so one
 /// bake serves every value of them.
-pub const BAKE_PARAMETERS: [&str; 6] = [
+pub const BAKE_PARAMETERS: [&str; 8] = [
     "entries",
     "clusters",
     "paths_per_entry",
     "normal_weight",
     "seed",
     "rank",
+    "pane_resolution",
+    "pane_texel_size",
 ];
 
 /// Parameters of PRM, bake and run time together.
@@ -162,6 +167,8 @@ pub struct PrmParams {
     pub paths_per_entry: u32,
     pub entry_area_samples: u32,
     pub rank: u32,
+    pub pane_resolution: u32,
+    pub pane_texel_size: f32,
     pub normal_weight: f32,
     pub space_rays: u32,
     pub final_gather: GatherReach,
@@ -179,6 +186,8 @@ impl Default for PrmParams {
             paths_per_entry: 4,
             entry_area_samples: 2,
             rank: 128,
+            pane_resolution: 256,
+            pane_texel_size: 0.0,
             normal_weight: 0.5,
             space_rays: 64,
             final_gather: GatherReach::default(),
@@ -191,6 +200,19 @@ impl Default for PrmParams {
 impl PrmParams {
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
         FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)
+    }
+
+    /// Metres between pane points; at or below the lightmap's texel every
+    /// receiver is one.
+    pub fn pane_spacing(&self, atlas: &relight_scene::atlas::Atlas) -> f32 {
+        if self.pane_texel_size > 0.0 {
+            self.pane_texel_size
+        } else if self.pane_resolution == 0 {
+            0.0
+        } else {
+            let longer = atlas.width.max(atlas.height) as f32;
+            atlas.metres_per_texel * longer / self.pane_resolution as f32
+        }
     }
 
     fn validate(&self) -> Result<(), TechniqueError> {
@@ -206,6 +228,10 @@ impl PrmParams {
             Some("space_rays must be at least 1")
         } else if self.paths_per_entry == 0 {
             Some("paths_per_entry must be at least 1")
+        } else if !(self.pane_texel_size.is_finite() && self.pane_texel_size >= 0.0) {
+            Some("pane_texel_size must be a finite number of metres >= 0 (0: use pane_resolution)")
+        } else if self.pane_resolution != 0 && self.pane_resolution < 8 {
+            Some("pane_resolution must be 0 (every lightmap texel) or at least 8")
         } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
             Some("normal_weight must be a finite number >= 0")
         } else {

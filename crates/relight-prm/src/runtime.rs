@@ -1,6 +1,7 @@
 //! The PRM run time: entry irradiance, cluster weights, top-K panes summed
 //! into the indirect lightmap.
 
+use crate::panes::{upsample, Upsampling};
 use crate::PrmBake;
 use glam::Vec3;
 use half::slice::HalfFloatSliceExt;
@@ -27,6 +28,10 @@ pub struct Prm {
     /// This frame's stored panes and their weights: the selected clusters,
     /// or with compression every basis pane.
     terms: Vec<(u32, Rgb)>,
+    /// The panes' sum at the pane points, when they are not every receiver.
+    pane_values: Vec<Rgb>,
+    /// From the pane points to every receiver (empty when they are all).
+    upsampling: Upsampling,
     receiver_values: Vec<Rgb>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
@@ -71,7 +76,7 @@ impl Prm {
             Selection::Contribution => {
                 let stored_totals: Vec<f32> = bake
                     .panes
-                    .chunks_exact(bake.receiver_count * 3)
+                    .chunks_exact(bake.pane_length() * 3)
                     .map(|pane| {
                         pane.chunks_exact(3)
                             .map(|rgb| {
@@ -108,6 +113,16 @@ impl Prm {
             (top_k as usize).min(bake.cluster_count)
         };
         let receivers = bake.receiver_count;
+        let upsampling = Upsampling::build(
+            &context,
+            &bake.pane_points.receivers,
+            bake.pane_points.spacing,
+        );
+        let pane_values = if upsampling.points.is_empty() {
+            Vec::new()
+        } else {
+            vec![Rgb::ZERO; bake.pane_length()]
+        };
         let final_gather =
             FinalGather::build(&context, final_gather, bake.entry_positions.len(), false);
         Self {
@@ -120,6 +135,8 @@ impl Prm {
                 ..context.settings.direct
             },
             receiver_values: vec![Rgb::ZERO; receivers],
+            pane_values,
+            upsampling,
             lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
             bake,
             top_k,
@@ -134,7 +151,7 @@ impl Prm {
 }
 
 /// out[r] = sum over (pane, weight) terms of weight * pane[r], blocked over
-/// receivers so each block's accumulators stay in L1.
+/// pane values so each block's accumulators stay in L1.
 fn sum_panes(panes: &[half::f16], receivers: usize, terms: &[(u32, Rgb)], out: &mut [Rgb]) {
     let wide = wide_kernel_available();
     out.par_chunks_mut(RECEIVER_BLOCK)
@@ -285,6 +302,7 @@ impl Technique for Prm {
             selected.retain(|&cluster| weights[cluster as usize] != Rgb::ZERO);
         });
         let receiver_values = &mut self.receiver_values;
+        let pane_values = &mut self.pane_values;
         let terms = &mut self.terms;
         self.timings.time("pane sum", || {
             terms.clear();
@@ -308,8 +326,19 @@ impl Technique for Prm {
                     }
                 }
             }
-            sum_panes(&bake.panes, bake.receiver_count, terms, receiver_values)
+            let out = if pane_values.is_empty() {
+                &mut receiver_values[..]
+            } else {
+                &mut pane_values[..]
+            };
+            sum_panes(&bake.panes, bake.pane_length(), terms, out)
         });
+        if !self.pane_values.is_empty() {
+            let (upsampling, pane_values) = (&self.upsampling, &self.pane_values);
+            self.timings.time("upsampling", || {
+                upsample(upsampling, pane_values, receiver_values)
+            });
+        }
         let final_gather = &mut self.final_gather;
         if !final_gather.is_empty() {
             self.timings.time("final gather", || {
@@ -366,6 +395,14 @@ impl Technique for Prm {
                 bake.panes.len() * 2,
             ),
             MemoryEntry::new("compression coefficients", bake.coefficients.len() * 4),
+            MemoryEntry::new(
+                format!(
+                    "upsampling from {} pane points ({} taps a receiver)",
+                    bake.pane_length(),
+                    crate::panes::TAPS
+                ),
+                self.upsampling.memory_bytes() + self.pane_values.len() * 12,
+            ),
             MemoryEntry::new(
                 "entry points",
                 bake.entry_positions.len() * (12 + 12 + 4 + 12),
