@@ -67,11 +67,33 @@
 //! stays where it was (Sponza 939 -> 949 MB, atrium 292 -> 299 MB) since
 //! the components are written as f16 in place.
 //!
+//! Why pane points (`pane_resolution`): the per-frame pane sum streams
+//! every basis pane from memory, and the bake traces a shadow ray from
+//! every pane value to every virtual light it faces, so both grow with the
+//! values a pane holds. The paper's panes were 256 x 256; relight's
+//! default spaces pane points like the texels of a lightmap 256 texels on
+//! its longer side and upsamples to the scene's lightmap (see [`panes`]).
+//! The figures above were measured with a pane value at every texel
+//! (`pane_resolution = 0`). Sponza (378k receivers, 39.8k pane points), 2
+//! threads: bake 71.9 -> 11.3 s and 920 -> 186 MiB at its peak, pane sum
+//! 17.9 -> 1.5-1.8 ms plus 0.55-0.66 ms of upsampling (`relight bench
+//! ../shared/scenes/sponza/scene.toml -t prm --frames 30
+//! --shading-resolution 0x0`); lightmap / camera-visible lightmap / 8x8
+//! tiles at every texel, 256 and 128: 20.9 / 18.6 / 11.1 %, 21.7 / 19.0 /
+//! 11.1 %, 22.2 / 19.0 / 11.0 % (`relight converge ... -t prm --sweep
+//! pane_resolution=0,256,128 --reference-samples 1024`). The living room
+//! loses more (visible lightmap / tiles at 0, 512, 256, 128: 14.4 / 8.5,
+//! 14.9 / 8.9, 15.4 / 9.4, 16.7 / 11.7 %; bakes 146.9, 49.9, 21.9, 10.8
+//! s): its panes carry indirect shadows of furniture finer than a pane
+//! texel. `--set pane_resolution=512` or `0` buys that back at the cost
+//! above. Lightmaps at most 256 texels wide (the shipped boxes) keep a
+//! value at every texel.
+//!
 //! Choose PRM for small and medium static scenes with few, moving lights
-//! where a lightmap is wanted anyway: its per-frame cost is K lightmap-sized
-//! multiply-adds, independent of how many bounces the panes contain. Memory
-//! grows as clusters times texels, which rules out large lightmaps with many
-//! clusters: [`estimate`] forecasts it (and the shadow rays, from the light
+//! where a lightmap is wanted anyway: its per-frame cost is K pane-sized
+//! multiply-adds and one upsampling, independent of how many bounces the
+//! panes contain. Memory grows as clusters times pane points, which rules
+//! out fine panes with many clusters: [`estimate`] forecasts it (and the shadow rays, from the light
 //! paths of 256 pilot entries) before a bake, and `relight bake` refuses a
 //! bake whose peak would pass `--max-memory` (default: the memory
 //! available), naming the parameters that lower it, or sharding it.

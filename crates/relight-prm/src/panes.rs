@@ -94,22 +94,24 @@ impl PanePoints {
         if spacing.is_nan() || spacing <= context.atlas.metres_per_texel || receivers.is_empty() {
             return Self::every_receiver();
         }
-        let all: Vec<u32> = (0..receivers.len() as u32).collect();
-        let mut points = bin_representatives(receivers, &all, spacing);
+        let mut uncovered: Vec<u32> = (0..receivers.len() as u32).collect();
+        let mut points = bin_representatives(receivers, &uncovered, spacing);
         for round in 0..=COVERAGE_ROUNDS {
-            let taps = Upsampling::build(context, &points, spacing);
-            if taps.points.is_empty() {
-                break;
-            }
-            let uncovered: Vec<u32> = (0..receivers.len() as u32)
-                .filter(|&receiver| taps.weights[receiver as usize][0] == 0)
+            // Points only ever add candidates, so a covered receiver stays
+            // covered: each round tests the ones the last left uncovered.
+            let taps = Upsampling::build_for(context, &points, spacing, &uncovered);
+            uncovered = uncovered
+                .iter()
+                .zip(&taps.weights)
+                .filter(|(_, weights)| weights[0] == 0)
+                .map(|(&receiver, _)| receiver)
                 .collect();
             if uncovered.is_empty() {
                 break;
             }
             // The last round takes every receiver still without light.
             let added = if round == COVERAGE_ROUNDS {
-                uncovered
+                std::mem::take(&mut uncovered)
             } else {
                 bin_representatives(receivers, &uncovered, spacing)
             };
@@ -189,14 +191,21 @@ impl Upsampling {
         if points.is_empty() {
             return Self::default();
         }
+        let every: Vec<u32> = (0..context.atlas.receivers.len() as u32).collect();
+        Self::build_for(context, points, spacing, &every)
+    }
+
+    /// Taps of the receivers `targets`, in their order.
+    fn build_for(context: &SceneContext, points: &[u32], spacing: f32, targets: &[u32]) -> Self {
         let receivers = &context.atlas.receivers;
         let reach = spacing * REACH_TEXELS;
         let grid = PointGrid::new(points, &receivers.positions, reach);
         let lift =
             (spacing * LIFT_TEXELS).max(relight_trace::direct::ray_epsilon_for(&context.bvh));
-        let (points, weights) = (0..receivers.len())
-            .into_par_iter()
-            .map_init(Vec::new, |candidates, receiver| {
+        let (points, weights) = targets
+            .par_iter()
+            .map_init(Vec::new, |candidates, &receiver| {
+                let receiver = receiver as usize;
                 let position = receivers.positions[receiver];
                 let normal = receivers.normals[receiver];
                 candidates.clear();
