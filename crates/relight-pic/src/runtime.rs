@@ -77,6 +77,10 @@ pub struct Pic {
     /// (YCoCg), fixed because emission is.
     surfel_area_light: Vec<Vec3>,
     surfel_direct: Vec<Rgb>,
+    /// The surfels' direct light that no frame changes (the environment,
+    /// and emissive triangles unless they light through the links), traced
+    /// by the first update; empty until then or without any.
+    surfel_static: Vec<Rgb>,
     /// Last frame's indirect irradiance at each surfel (YCoCg), reused.
     surfel_indirect: Vec<Vec3>,
     /// A_l of the clamped cosine lobe, per band.
@@ -179,6 +183,7 @@ impl Pic {
             surfel_basis,
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
+            surfel_static: Vec::new(),
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
             cosine_factors,
             flux,
@@ -551,10 +556,28 @@ impl Pic {
             direct.settings.area_light_samples = 0;
         }
         let surfels = &self.bake.surfels;
-        direct.irradiance_batch(
+        if !direct.has_static_light() {
+            direct.irradiance_batch(
+                frame.lights,
+                &surfels.positions,
+                &surfels.normals,
+                &mut self.surfel_direct,
+            );
+            return;
+        }
+        if self.surfel_static.len() != surfels.positions.len() {
+            self.surfel_static = vec![Rgb::ZERO; surfels.positions.len()];
+            direct.static_irradiance_batch(
+                &surfels.positions,
+                &surfels.normals,
+                &mut self.surfel_static,
+            );
+        }
+        direct.irradiance_batch_over_static(
             frame.lights,
             &surfels.positions,
             &surfels.normals,
+            &self.surfel_static,
             &mut self.surfel_direct,
         );
     }

@@ -99,6 +99,11 @@ pub struct Srp {
     gathered_positions: Vec<Vec3>,
     gathered_normals: Vec<Vec3>,
     gathered_direct: Vec<Rgb>,
+    /// The static direct light (environment, emissive triangles) of every
+    /// visible texel, traced by the first update; empty until then or
+    /// without any; and of this frame's needed texels.
+    visible_static: Vec<Rgb>,
+    gathered_static: Vec<Rgb>,
     updates: u64,
     /// The last frame's lights and the fixed rays that answer points in
     /// space from the light leaving the surfaces around them.
@@ -230,6 +235,8 @@ impl Srp {
             gathered_positions: Vec::new(),
             gathered_normals: Vec::new(),
             gathered_direct: Vec::new(),
+            visible_static: Vec::new(),
+            gathered_static: Vec::new(),
             updates: 0,
             lights: Vec::new(),
             space_gather: SurfaceGather::new(settings.space_rays),
@@ -316,31 +323,68 @@ impl Srp {
     /// Direct irradiance at the needed texels.
     fn direct_light(&mut self, frame: &Frame) {
         let direct = self.context.direct();
-        if self.needed.len() == self.visible_positions.len() {
-            direct.irradiance_batch(
-                frame.lights,
+        let has_static = direct.has_static_light();
+        // The light that no frame changes is traced once for every visible
+        // texel (by texel index, so a texel keeps its samples whichever
+        // texels a frame needs), then only the punctual lights each frame.
+        if has_static && self.visible_static.len() != self.visible_positions.len() {
+            self.visible_static = vec![Rgb::ZERO; self.visible_positions.len()];
+            direct.static_irradiance_batch(
                 &self.visible_positions,
                 &self.visible_normals,
-                &mut self.visible_direct,
+                &mut self.visible_static,
             );
+        }
+        if self.needed.len() == self.visible_positions.len() {
+            if has_static {
+                direct.irradiance_batch_over_static(
+                    frame.lights,
+                    &self.visible_positions,
+                    &self.visible_normals,
+                    &self.visible_static,
+                    &mut self.visible_direct,
+                );
+            } else {
+                direct.irradiance_batch(
+                    frame.lights,
+                    &self.visible_positions,
+                    &self.visible_normals,
+                    &mut self.visible_direct,
+                );
+            }
             return;
         }
         self.gathered_positions.clear();
         self.gathered_normals.clear();
+        self.gathered_static.clear();
         for &texel in &self.needed {
             self.gathered_positions
                 .push(self.visible_positions[texel as usize]);
             self.gathered_normals
                 .push(self.visible_normals[texel as usize]);
+            if has_static {
+                self.gathered_static
+                    .push(self.visible_static[texel as usize]);
+            }
         }
         self.gathered_direct.clear();
         self.gathered_direct.resize(self.needed.len(), Rgb::ZERO);
-        direct.irradiance_batch(
-            frame.lights,
-            &self.gathered_positions,
-            &self.gathered_normals,
-            &mut self.gathered_direct,
-        );
+        if has_static {
+            direct.irradiance_batch_over_static(
+                frame.lights,
+                &self.gathered_positions,
+                &self.gathered_normals,
+                &self.gathered_static,
+                &mut self.gathered_direct,
+            );
+        } else {
+            direct.irradiance_batch(
+                frame.lights,
+                &self.gathered_positions,
+                &self.gathered_normals,
+                &mut self.gathered_direct,
+            );
+        }
         for (&texel, &value) in self.needed.iter().zip(&self.gathered_direct) {
             self.visible_direct[texel as usize] = value;
         }
