@@ -78,9 +78,8 @@ pub struct Pic {
     surfel_area_light: Vec<Vec3>,
     surfel_direct: Vec<Rgb>,
     /// The surfels' direct light that no frame changes (the environment,
-    /// and emissive triangles unless they light through the links), traced
-    /// by the first update; empty until then or without any.
-    surfel_static: Vec<Rgb>,
+    /// and emissive triangles unless they light through the links).
+    surfel_static: relight_trace::direct::StaticDirect,
     /// Last frame's indirect irradiance at each surfel (YCoCg), reused.
     surfel_indirect: Vec<Vec3>,
     /// A_l of the clamped cosine lobe, per band.
@@ -183,7 +182,7 @@ impl Pic {
             surfel_basis,
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
-            surfel_static: Vec::new(),
+            surfel_static: Default::default(),
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
             cosine_factors,
             flux,
@@ -556,28 +555,11 @@ impl Pic {
             direct.settings.area_light_samples = 0;
         }
         let surfels = &self.bake.surfels;
-        if !direct.has_static_light() {
-            direct.irradiance_batch(
-                frame.lights,
-                &surfels.positions,
-                &surfels.normals,
-                &mut self.surfel_direct,
-            );
-            return;
-        }
-        if self.surfel_static.len() != surfels.positions.len() {
-            self.surfel_static = vec![Rgb::ZERO; surfels.positions.len()];
-            direct.static_irradiance_batch(
-                &surfels.positions,
-                &surfels.normals,
-                &mut self.surfel_static,
-            );
-        }
-        direct.irradiance_batch_over_static(
+        self.surfel_static.irradiance_batch(
+            &direct,
             frame.lights,
             &surfels.positions,
             &surfels.normals,
-            &self.surfel_static,
             &mut self.surfel_direct,
         );
     }

@@ -11,7 +11,7 @@ use relight_technique::{
     FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
     SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
-use relight_trace::direct::{DirectLight, DirectSettings};
+use relight_trace::direct::{DirectLight, DirectSettings, StaticDirect};
 use std::sync::Arc;
 
 /// Receivers per work item of the lightmap sum: its f32 accumulators and one
@@ -23,6 +23,8 @@ pub struct Prm {
     bake: PrmBake,
     top_k: usize,
     entry_irradiance: Vec<Rgb>,
+    /// The entries' direct light that no frame changes.
+    entry_static: StaticDirect,
     cluster_weights: Vec<Rgb>,
     selected: Vec<u32>,
     /// This frame's stored panes and their weights: the selected clusters,
@@ -127,6 +129,7 @@ impl Prm {
             FinalGather::build(&context, final_gather, bake.entry_positions.len(), false);
         Self {
             entry_irradiance: vec![Rgb::ZERO; bake.entry_positions.len()],
+            entry_static: StaticDirect::default(),
             cluster_weights: vec![Rgb::ZERO; bake.cluster_count],
             selected: Vec::with_capacity(top_k),
             terms: Vec::with_capacity(top_k.max(bake.rank)),
@@ -262,15 +265,18 @@ impl Technique for Prm {
         let context = &self.context;
         let bake = &self.bake;
         let entry_irradiance = &mut self.entry_irradiance;
+        let entry_static = &mut self.entry_static;
         let settings = self.entry_direct;
         self.timings.time("entry irradiance", || {
-            DirectLight::new(&context.scene, &context.bvh, &context.emitters, settings)
-                .irradiance_batch(
-                    frame.lights,
-                    &bake.entry_positions,
-                    &bake.entry_normals,
-                    entry_irradiance,
-                );
+            let direct =
+                DirectLight::new(&context.scene, &context.bvh, &context.emitters, settings);
+            entry_static.irradiance_batch(
+                &direct,
+                frame.lights,
+                &bake.entry_positions,
+                &bake.entry_normals,
+                entry_irradiance,
+            );
         });
         let weights = &mut self.cluster_weights;
         let selected = &mut self.selected;

@@ -100,9 +100,8 @@ pub struct Srp {
     gathered_normals: Vec<Vec3>,
     gathered_direct: Vec<Rgb>,
     /// The static direct light (environment, emissive triangles) of every
-    /// visible texel, traced by the first update; empty until then or
-    /// without any; and of this frame's needed texels.
-    visible_static: Vec<Rgb>,
+    /// visible texel, and of this frame's needed texels.
+    visible_static: relight_trace::direct::StaticDirect,
     gathered_static: Vec<Rgb>,
     updates: u64,
     /// The last frame's lights and the fixed rays that answer points in
@@ -235,7 +234,7 @@ impl Srp {
             gathered_positions: Vec::new(),
             gathered_normals: Vec::new(),
             gathered_direct: Vec::new(),
-            visible_static: Vec::new(),
+            visible_static: Default::default(),
             gathered_static: Vec::new(),
             updates: 0,
             lights: Vec::new(),
@@ -323,37 +322,22 @@ impl Srp {
     /// Direct irradiance at the needed texels.
     fn direct_light(&mut self, frame: &Frame) {
         let direct = self.context.direct();
-        let has_static = direct.has_static_light();
-        // The light that no frame changes is traced once for every visible
-        // texel (by texel index, so a texel keeps its samples whichever
-        // texels a frame needs), then only the punctual lights each frame.
-        if has_static && self.visible_static.len() != self.visible_positions.len() {
-            self.visible_static = vec![Rgb::ZERO; self.visible_positions.len()];
-            direct.static_irradiance_batch(
+        if self.needed.len() == self.visible_positions.len() {
+            self.visible_static.irradiance_batch(
+                &direct,
+                frame.lights,
                 &self.visible_positions,
                 &self.visible_normals,
-                &mut self.visible_static,
+                &mut self.visible_direct,
             );
-        }
-        if self.needed.len() == self.visible_positions.len() {
-            if has_static {
-                direct.irradiance_batch_over_static(
-                    frame.lights,
-                    &self.visible_positions,
-                    &self.visible_normals,
-                    &self.visible_static,
-                    &mut self.visible_direct,
-                );
-            } else {
-                direct.irradiance_batch(
-                    frame.lights,
-                    &self.visible_positions,
-                    &self.visible_normals,
-                    &mut self.visible_direct,
-                );
-            }
             return;
         }
+        // The static light is traced once for every visible texel (by
+        // texel index, so a texel keeps its samples whichever texels a
+        // frame needs).
+        let visible_static =
+            self.visible_static
+                .at(&direct, &self.visible_positions, &self.visible_normals);
         self.gathered_positions.clear();
         self.gathered_normals.clear();
         self.gathered_static.clear();
@@ -362,14 +346,13 @@ impl Srp {
                 .push(self.visible_positions[texel as usize]);
             self.gathered_normals
                 .push(self.visible_normals[texel as usize]);
-            if has_static {
-                self.gathered_static
-                    .push(self.visible_static[texel as usize]);
+            if let Some(fixed) = visible_static {
+                self.gathered_static.push(fixed[texel as usize]);
             }
         }
         self.gathered_direct.clear();
         self.gathered_direct.resize(self.needed.len(), Rgb::ZERO);
-        if has_static {
+        if visible_static.is_some() {
             direct.irradiance_batch_over_static(
                 frame.lights,
                 &self.gathered_positions,

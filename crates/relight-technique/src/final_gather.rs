@@ -66,7 +66,7 @@ use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere, mix64, orthonormal_basis, radical_inverse};
 use relight_core::Rgb;
 use relight_scene::Light;
-use relight_trace::direct::morton_order;
+use relight_trace::direct::{morton_order, StaticDirect};
 use relight_trace::Ray;
 
 /// Marks a gather ray that escapes or meets a texel no receiver covers.
@@ -271,8 +271,8 @@ pub struct FinalGather {
     slot_normals: Vec<Vec3>,
     slot_albedos: Vec<Rgb>,
     /// Per slot, the direct light that no frame changes (emissive
-    /// triangles, the environment), traced once; empty without any.
-    slot_static: Vec<Rgb>,
+    /// triangles, the environment), traced once.
+    slot_static: StaticDirect,
     /// Per-frame: direct light and outgoing radiosity (times pi) per slot.
     slot_direct: Vec<Rgb>,
     slot_radiosity: Vec<Rgb>,
@@ -452,12 +452,9 @@ impl FinalGather {
             })
             .collect();
         let slots = slot_points.len();
-        let direct = context.direct();
-        let mut slot_static = Vec::new();
-        if direct.has_static_light() {
-            slot_static = vec![Rgb::ZERO; slots];
-            direct.static_irradiance_batch(&slot_positions, &slot_normals, &mut slot_static);
-        }
+        let mut slot_static = StaticDirect::default();
+        // Traced here, at load, rather than by the first frame.
+        let _ = slot_static.at(&context.direct(), &slot_positions, &slot_normals);
         let map_size = if correction_map && !gathering.is_empty() {
             (context.atlas.width * context.atlas.height) as usize
         } else {
@@ -536,23 +533,13 @@ impl FinalGather {
         if self.receivers.is_empty() {
             return;
         }
-        let direct = context.direct();
-        if self.slot_static.is_empty() {
-            direct.irradiance_batch(
-                lights,
-                &self.slot_positions,
-                &self.slot_normals,
-                &mut self.slot_direct,
-            );
-        } else {
-            direct.irradiance_batch_over_static(
-                lights,
-                &self.slot_positions,
-                &self.slot_normals,
-                &self.slot_static,
-                &mut self.slot_direct,
-            );
-        }
+        self.slot_static.irradiance_batch(
+            &context.direct(),
+            lights,
+            &self.slot_positions,
+            &self.slot_normals,
+            &mut self.slot_direct,
+        );
     }
 
     /// The second half of [`Self::update`]: gathers the hits' light (their
@@ -667,7 +654,7 @@ impl FinalGather {
         self.receivers.len() * 4
             + self.hits.len() * 4
             + self.slot_receivers.len() * (4 + 4 + 1 + 12 + 12 + 12 + 12 + 12)
-            + self.slot_static.len() * 12
+            + self.slot_static.memory_bytes()
             + self.values.len() * 12
             + self.correction_map.len() * 12
             + self.correction_dilation.len() * 8

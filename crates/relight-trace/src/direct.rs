@@ -73,6 +73,57 @@ impl Default for DirectSettings {
     }
 }
 
+/// The direct light at a fixed set of points that no frame changes
+/// (emissive triangles, the environment), traced the first time it is
+/// asked for. A technique that lights the same points every frame keeps
+/// one, so that a frame traces only its punctual lights.
+#[derive(Clone, Debug, Default)]
+pub struct StaticDirect {
+    irradiance: Vec<Rgb>,
+}
+
+impl StaticDirect {
+    /// The static irradiance at `points` (the same points at every call),
+    /// or `None` when the scene has no static light.
+    pub fn at(
+        &mut self,
+        direct: &DirectLight,
+        points: &[Vec3],
+        normals: &[Vec3],
+    ) -> Option<&[Rgb]> {
+        if !direct.has_static_light() {
+            return None;
+        }
+        if self.irradiance.len() != points.len() {
+            self.irradiance = vec![Rgb::ZERO; points.len()];
+            direct.static_irradiance_batch(points, normals, &mut self.irradiance);
+        }
+        Some(&self.irradiance)
+    }
+
+    /// [`DirectLight::irradiance_batch`] at `points` (the same points at
+    /// every call), tracing the static light only the first time.
+    pub fn irradiance_batch(
+        &mut self,
+        direct: &DirectLight,
+        lights: &[Light],
+        points: &[Vec3],
+        normals: &[Vec3],
+        irradiance: &mut [Rgb],
+    ) {
+        match self.at(direct, points, normals) {
+            Some(fixed) => {
+                direct.irradiance_batch_over_static(lights, points, normals, fixed, irradiance)
+            }
+            None => direct.irradiance_batch(lights, points, normals, irradiance),
+        }
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.irradiance.len() * 12
+    }
+}
+
 /// Emissive triangles with a power-proportional sampling table.
 #[derive(Clone, Debug, Default)]
 pub struct Emitters {
@@ -279,26 +330,10 @@ impl<'a> DirectLight<'a> {
         normals: &[Vec3],
         irradiance: &mut [Rgb],
     ) {
-        assert_eq!(points.len(), normals.len());
-        assert_eq!(points.len(), irradiance.len());
-        irradiance
-            .par_chunks_mut(POINTS_PER_TASK)
-            .enumerate()
-            .for_each(|(chunk, out)| {
-                let start = chunk * POINTS_PER_TASK;
-                let mut cache = ShadowCache::default();
-                for (offset, value) in out.iter_mut().enumerate() {
-                    let index = start + offset;
-                    let origin = points[index] + normals[index] * self.ray_epsilon;
-                    *value = self.static_part(
-                        Rgb::ZERO,
-                        origin,
-                        normals[index],
-                        index as u64,
-                        &mut cache,
-                    );
-                }
-            });
+        self.batch(points, normals, irradiance, |index, cache| {
+            let origin = points[index] + normals[index] * self.ray_epsilon;
+            self.static_part(Rgb::ZERO, origin, normals[index], index as u64, cache)
+        });
     }
 
     /// [`Self::irradiance_batch`] given its static part from
@@ -312,22 +347,11 @@ impl<'a> DirectLight<'a> {
         static_irradiance: &[Rgb],
         irradiance: &mut [Rgb],
     ) {
-        assert_eq!(points.len(), normals.len());
-        assert_eq!(points.len(), irradiance.len());
         assert_eq!(points.len(), static_irradiance.len());
-        irradiance
-            .par_chunks_mut(POINTS_PER_TASK)
-            .enumerate()
-            .for_each(|(chunk, out)| {
-                let start = chunk * POINTS_PER_TASK;
-                let mut cache = ShadowCache::default();
-                for (offset, value) in out.iter_mut().enumerate() {
-                    let index = start + offset;
-                    let origin = points[index] + normals[index] * self.ray_epsilon;
-                    *value = self.punctual_part(lights, origin, normals[index], &mut cache)
-                        + static_irradiance[index];
-                }
-            });
+        self.batch(points, normals, irradiance, |index, cache| {
+            let origin = points[index] + normals[index] * self.ray_epsilon;
+            self.punctual_part(lights, origin, normals[index], cache) + static_irradiance[index]
+        });
     }
 
     /// Batch form over struct-of-arrays inputs; `keys` default to indices.
@@ -338,23 +362,29 @@ impl<'a> DirectLight<'a> {
         normals: &[Vec3],
         irradiance: &mut [Rgb],
     ) {
+        self.batch(points, normals, irradiance, |index, cache| {
+            self.irradiance_cached(lights, points[index], normals[index], index as u64, cache)
+        });
+    }
+
+    /// `out[i] = point(i, cache)` in parallel blocks of points, each block
+    /// carrying one shadow cache from point to point.
+    fn batch(
+        &self,
+        points: &[Vec3],
+        normals: &[Vec3],
+        out: &mut [Rgb],
+        point: impl Fn(usize, &mut ShadowCache) -> Rgb + Sync,
+    ) {
         assert_eq!(points.len(), normals.len());
-        assert_eq!(points.len(), irradiance.len());
-        irradiance
-            .par_chunks_mut(POINTS_PER_TASK)
+        assert_eq!(points.len(), out.len());
+        out.par_chunks_mut(POINTS_PER_TASK)
             .enumerate()
-            .for_each(|(chunk, out)| {
+            .for_each(|(chunk, values)| {
                 let start = chunk * POINTS_PER_TASK;
                 let mut cache = ShadowCache::default();
-                for (offset, value) in out.iter_mut().enumerate() {
-                    let index = start + offset;
-                    *value = self.irradiance_cached(
-                        lights,
-                        points[index],
-                        normals[index],
-                        index as u64,
-                        &mut cache,
-                    );
+                for (offset, value) in values.iter_mut().enumerate() {
+                    *value = point(start + offset, &mut cache);
                 }
             });
     }
