@@ -75,19 +75,28 @@
 //! its longer side and upsamples to the scene's lightmap (see [`panes`]).
 //! The figures above were measured with a pane value at every texel
 //! (`pane_resolution = 0`). Sponza (378k receivers, 39.8k pane points), 2
-//! threads: bake 71.9 -> 11.3 s and 920 -> 186 MiB at its peak, pane sum
-//! 17.9 -> 1.5-1.8 ms plus 0.55-0.66 ms of upsampling (`relight bench
-//! ../shared/scenes/sponza/scene.toml -t prm --frames 30
-//! --shading-resolution 0x0`); lightmap / camera-visible lightmap / 8x8
-//! tiles at every texel, 256 and 128: 20.9 / 18.6 / 11.1 %, 21.7 / 19.0 /
-//! 11.1 %, 22.2 / 19.0 / 11.0 % (`relight converge ... -t prm --sweep
-//! pane_resolution=0,256,128 --reference-samples 1024`). The living room
-//! loses more (visible lightmap / tiles at 0, 512, 256, 128: 14.4 / 8.5,
-//! 14.9 / 8.9, 15.4 / 9.4, 16.7 / 11.7 %; bakes 146.9, 49.9, 21.9, 10.8
-//! s): its panes carry indirect shadows of furniture finer than a pane
-//! texel. `--set pane_resolution=512` or `0` buys that back at the cost
-//! above. Lightmaps at most 256 texels wide (the shipped boxes) keep a
-//! value at every texel.
+//! threads: bake 71.9 -> 10.6 s and 920 -> 188 MiB at its peak, pane sum
+//! 17.9 -> 1.1-2.1 ms plus 0.5-0.7 ms of upsampling (`relight bench
+//! ../shared/scenes/sponza/scene.toml -t prm --frames 20
+//! --shading-resolution 0x0`, three rounds); lightmap / camera-visible
+//! lightmap / 8x8 tiles at every texel, 256 and 128: 20.9 / 18.6 / 11.1 %,
+//! 21.7 / 19.0 / 11.1 %, 22.2 / 19.0 / 11.0 % (`relight converge ... -t
+//! prm --sweep pane_resolution=0,256,128 --reference-samples 1024`);
+//! Sponza's point light 15.2 / 13.4 -> 16.1 / 13.7 %, the atrium 14.4 /
+//! 12.4 -> 14.5 / 12.2 %. The living room loses more (visible lightmap /
+//! tiles at 0, 512, 256, 128 with 256 reference paths: 14.4 / 8.5, 14.9 /
+//! 8.9, 15.4 / 9.4, 16.7 / 11.7 %; bakes 146.9, 49.9, 21.9, 10.8 s): its
+//! panes carry indirect shadows of furniture finer than a pane texel, and
+//! a sharper blend (modified Shepard weights, exact at the pane points)
+//! measured the same. `--set pane_resolution=512` or `0` buys that back at
+//! the cost above. Lightmaps at most 256 texels wide (the shipped boxes)
+//! keep a value at every texel.
+//!
+//! Per frame on Sponza the pane sum is no longer what costs: the update
+//! takes 2.8-3.1 ms without the final gather (pane sum, upsampling, and
+//! 0.8-0.9 ms writing the 1024 x 1024 f32 lightmap) and 23.4-24.4 ms with
+//! it, whose 391k hit texels each trace a shadow ray toward the sun
+//! (`--set final_gather=0|auto`, three interleaved rounds).
 //!
 //! Choose PRM for small and medium static scenes with few, moving lights
 //! where a lightmap is wanted anyway: its per-frame cost is K pane-sized
@@ -341,6 +350,16 @@ impl TechniqueKind for PrmKind {
         let bake = bake.ok_or(TechniqueError::BakeRequired { technique: "prm" })?;
         let bake = PrmBake::decode(bake)?;
         context.check_bake_receivers("prm", bake.receiver_count)?;
+        // The bake only chooses pane points wider apart than a texel; a
+        // spacing below that comes from a damaged file and would pile every
+        // point into one cell of the taps' grid.
+        let spacing = bake.pane_points.spacing;
+        if !bake.pane_points.is_every_receiver() && spacing <= context.atlas.metres_per_texel {
+            return Err(TechniqueError::Other(format!(
+                "PRM bake is corrupt: its pane points are {spacing} m apart, not wider than the lightmap's {} m texels; bake it again",
+                context.atlas.metres_per_texel
+            )));
+        }
         let selection = if params.selection == "contribution" {
             Selection::Contribution
         } else {

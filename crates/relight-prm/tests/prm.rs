@@ -613,3 +613,28 @@ fn every_receiver_reads_a_pane_point() {
         assert!(share < 0.2, "{scene}: {share}");
     }
 }
+
+/// A bake whose pane points claim to be closer than a lightmap texel (only
+/// a damaged file can) is refused, not left to crowd the taps' grid.
+#[test]
+fn pane_points_closer_than_a_texel_are_refused() {
+    let context = context("cornell-box-point", 32);
+    let params: Vec<(String, String)> = [
+        ("entries", "256"),
+        ("clusters", "16"),
+        ("rank", "4"),
+        ("pane_resolution", "16"),
+    ]
+    .iter()
+    .map(|(key, value)| (key.to_string(), value.to_string()))
+    .collect();
+    let bytes = PrmKind.bake(&context, &params, &NoProgress).unwrap();
+    let mut bake = PrmBake::decode(&bytes).unwrap();
+    assert!(!bake.pane_points.is_every_receiver());
+    bake.pane_points.spacing = 1e-30;
+    let error = PrmKind
+        .create(context.clone(), Some(&bake.encode()), &params, &NoProgress)
+        .err()
+        .expect("refused");
+    assert!(error.to_string().contains("bake it again"), "{error}");
+}
