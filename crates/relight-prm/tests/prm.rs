@@ -248,11 +248,10 @@ fn corrupt_payloads_are_errors_not_panics() {
     assert!(PrmBake::decode(&lying).is_err());
 }
 
-/// Bit flips and truncations of a bake are refused or run; none panics.
-#[test]
-fn damaged_bakes_never_panic() {
-    let context = context("cornell-box-point", 32);
-    let params: Vec<(String, String)> = [
+/// A quick bake's parameters with pane points two texels apart at a
+/// 32-texel lightmap.
+fn small_bake_with_pane_points() -> Vec<(String, String)> {
+    [
         ("entries", "256"),
         ("clusters", "16"),
         ("rank", "4"),
@@ -260,7 +259,14 @@ fn damaged_bakes_never_panic() {
     ]
     .iter()
     .map(|(key, value)| (key.to_string(), value.to_string()))
-    .collect();
+    .collect()
+}
+
+/// Bit flips and truncations of a bake are refused or run; none panics.
+#[test]
+fn damaged_bakes_never_panic() {
+    let context = context("cornell-box-point", 32);
+    let params = small_bake_with_pane_points();
     let bake = PrmKind.bake(&context, &params, &NoProgress).unwrap();
     let (accepted, refused) = relight_technique::robustness::check_damaged_payloads(
         &PrmKind, &context, &params, &bake, 300, 1,
@@ -619,15 +625,7 @@ fn every_receiver_reads_a_pane_point() {
 #[test]
 fn pane_points_closer_than_a_texel_are_refused() {
     let context = context("cornell-box-point", 32);
-    let params: Vec<(String, String)> = [
-        ("entries", "256"),
-        ("clusters", "16"),
-        ("rank", "4"),
-        ("pane_resolution", "16"),
-    ]
-    .iter()
-    .map(|(key, value)| (key.to_string(), value.to_string()))
-    .collect();
+    let params = small_bake_with_pane_points();
     let bytes = PrmKind.bake(&context, &params, &NoProgress).unwrap();
     let mut bake = PrmBake::decode(&bytes).unwrap();
     assert!(!bake.pane_points.is_every_receiver());
