@@ -569,7 +569,7 @@ impl LightSkin {
         );
 
         // Moving meshes: points and vertex neighbour lists in mesh space.
-        let mut vertex_interpolation = Interpolation::default();
+        let mut vertex_lists = Vec::with_capacity(dynamic_meshes.len());
         let mut vertex_normals_local = Vec::new();
         for mesh in &dynamic_meshes {
             let first = sparse.positions.len();
@@ -587,10 +587,11 @@ impl LightSkin {
                 &sparse.normals[first..],
                 area_per_point.sqrt(),
             );
-            vertex_interpolation.append(lists, first as u32);
+            vertex_lists.push((lists, first as u32));
             vertex_normals_local.extend(normals);
             sparse.dynamic_anchors.push((first, anchors));
         }
+        let vertex_interpolation = Interpolation::concat(vertex_lists);
 
         let point_count = sparse.positions.len();
         let receiver_count = context.atlas.receivers.len();

@@ -368,22 +368,29 @@ impl Interpolation {
         }
     }
 
-    /// Appends `other`'s targets, whose point indices count from `first`.
-    pub fn append(&mut self, other: Interpolation, first: u32) {
-        let mut wide = self.wide_lists();
-        wide.extend(
-            other
-                .wide_lists()
-                .into_iter()
-                .map(|list| list.map(|index| index + first)),
-        );
+    /// The targets of every part in order, each part's point indices
+    /// counting from its offset.
+    pub fn concat(parts: Vec<(Interpolation, u32)>) -> Self {
+        let mut wide = Vec::new();
+        let mut weights = Vec::new();
+        for (part, first) in parts {
+            wide.extend(
+                part.wide_lists()
+                    .into_iter()
+                    .map(|list| list.map(|index| index + first)),
+            );
+            weights.extend(part.weights);
+        }
         let fits = wide.iter().flatten().all(|&index| index < 1 << 16);
-        self.neighbours = if fits {
+        let neighbours = if fits {
             Neighbours::Narrow(wide.into_iter().map(|l| l.map(|i| i as u16)).collect())
         } else {
             Neighbours::Wide(wide)
         };
-        self.weights.extend(other.weights);
+        Self {
+            neighbours,
+            weights,
+        }
     }
 
     fn wide_lists(&self) -> Vec<[u32; NEIGHBOURS]> {
