@@ -19,9 +19,10 @@ use relight_trace::Ray;
 /// Payload layout version; bump when the encoding changes.
 const PAYLOAD_VERSION: u32 = 5;
 
-/// Bytes of f16 RGB panes for `clusters` panes over `receivers` texels.
-pub fn estimate_pane_bytes(clusters: u64, receivers: u64) -> u64 {
-    clusters * receivers * 3 * 2
+/// Bytes of f16 RGB panes for `clusters` panes of `pane_points` values
+/// (every receiver at `pane_resolution = 0`).
+pub fn estimate_pane_bytes(clusters: u64, pane_points: u64) -> u64 {
+    clusters * pane_points * 3 * 2
 }
 
 /// Basis panes the compression keeps; 0 = none.
@@ -33,23 +34,24 @@ fn compressed_rank(params: &PrmParams) -> u64 {
     }
 }
 
-/// The most the panes take during `shard`'s bake over `receivers` texels:
-/// its f16 panes with one f32 pane per worker thread while they are
-/// gathered, for a shard then its panes again as the encoded payload, and
-/// for a whole bake every pane with the compression's f16 basis (the peak
-/// at the defaults: Sponza's 256 + 128 panes are 831 of the 924 MiB the
-/// bake's process peaks at, the rest being the scene, its BVH and
-/// lightmap). A merge peaks like a whole bake.
-pub fn estimate_peak_bytes(params: &PrmParams, shard: Shard, receivers: u64) -> u64 {
+/// The most the panes take during `shard`'s bake over `pane_points`
+/// values: its f16 panes with one f32 pane per worker thread while they
+/// are gathered, for a shard then its panes again as the encoded payload,
+/// and for a whole bake every pane with the compression's f16 basis (with
+/// a pane value at every texel, Sponza's 256 + 128 panes were 831 of the
+/// 924 MiB the bake's process peaked at; at the default pane resolution
+/// this counts 87 MiB against a measured peak of 188 MiB). A merge peaks
+/// like a whole bake.
+pub fn estimate_peak_bytes(params: &PrmParams, shard: Shard, pane_points: u64) -> u64 {
     let own = estimate_pane_bytes(
         shard.range(params.clusters as usize).len() as u64,
-        receivers,
+        pane_points,
     );
-    let scratch = rayon::current_num_threads() as u64 * receivers * 12;
+    let scratch = rayon::current_num_threads() as u64 * pane_points * 12;
     if shard == Shard::WHOLE {
         (own + scratch).max(estimate_pane_bytes(
             params.clusters as u64 + compressed_rank(params),
-            receivers,
+            pane_points,
         ))
     } else {
         (own + scratch).max(2 * own)
@@ -69,7 +71,7 @@ const PILOT_SPREAD: u64 = 2_654_435_761;
 const TIMED_EVERY: u64 = 4;
 const TIMED_RAYS: usize = 1 << 18;
 
-/// Receiver pairs each pilot light is tested against for facing.
+/// Pane points each pilot light is tested against for facing.
 const PILOT_RECEIVERS: usize = 4096;
 
 /// Forecasts `shard`'s bake without baking: the same entry points and light
