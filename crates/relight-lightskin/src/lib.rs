@@ -1103,7 +1103,9 @@ impl Technique for LightSkin {
         timings.time("renormalise", || self.renormalise_points());
         timings.time("interpolate", || self.interpolate());
         if !self.final_gather.is_empty() {
-            timings.time("final gather", || self.apply_final_gather(frame.lights));
+            let start = std::time::Instant::now();
+            self.apply_final_gather(frame.lights);
+            self.final_gather.push_stages(&mut timings, start.elapsed());
         }
         timings.time("lightmap", || {
             self.context

@@ -13,7 +13,7 @@ use relight_technique::{
     SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use std::f32::consts::PI;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 const NO_CACHE: u32 = u32::MAX;
@@ -91,7 +91,12 @@ pub struct Pic {
     stride: usize,
     pull_subtrees: Vec<u32>,
     pull_top: Vec<u32>,
-    receiver_values: OnceLock<Vec<Rgb>>,
+    /// Per receiver, this frame's light from the caches, and after the
+    /// final gather its near field: the lightmap's values, produced within
+    /// the timed update because an engine uploads them every frame. The
+    /// gather reads the caches' light at its hit points from here too
+    /// instead of looking each up again.
+    receiver_values: Vec<Rgb>,
     timings: StageTimings,
     updates: u64,
     /// The last frame's lights, for gathers at points in space.
@@ -190,7 +195,7 @@ impl Pic {
             stride,
             pull_subtrees: Vec::new(),
             pull_top: Vec::new(),
-            receiver_values: OnceLock::new(),
+            receiver_values: vec![Rgb::ZERO; context.atlas.receivers.len()],
             timings: StageTimings::default(),
             updates: 0,
             lights: Vec::new(),
@@ -352,7 +357,7 @@ impl Pic {
             .map(|&receiver| {
                 let receivers = &self.context.atlas.receivers;
                 let index = receiver as usize;
-                self.receiver_cached_irradiance(receiver)
+                self.receiver_values[index]
                     - self.surface_irradiance(
                         receivers.triangles[index],
                         receivers.barycentrics[index],
@@ -748,12 +753,25 @@ impl Pic {
             return;
         }
         let mut final_gather = std::mem::take(&mut self.final_gather);
+        let values = &self.receiver_values;
         final_gather.gather(
             &self.context,
-            |receiver| self.receiver_cached_irradiance(receiver),
+            |receiver| values[receiver as usize],
             self.settings.bounces > 1,
         );
         self.final_gather = final_gather;
+    }
+
+    /// Sets [`Self::receiver_values`] to every receiver's light from this
+    /// pass's caches.
+    fn look_up_receivers(&mut self) {
+        let mut values = std::mem::take(&mut self.receiver_values);
+        values
+            .par_iter_mut()
+            .with_min_len(256)
+            .enumerate()
+            .for_each(|(index, value)| *value = self.receiver_cached_irradiance(index as u32));
+        self.receiver_values = values;
     }
 
     fn surface_irradiance(&self, triangle: u32, barycentric: Vec2, normal: Vec3) -> Rgb {
@@ -1007,6 +1025,7 @@ impl Technique for Pic {
         let mut surfel_time = Duration::ZERO;
         let mut pull_time = Duration::ZERO;
         let mut cache_time = Duration::ZERO;
+        let mut receiver_time = Duration::ZERO;
         let start = Instant::now();
         self.direct_light(frame);
         surfel_time += start.elapsed();
@@ -1023,19 +1042,28 @@ impl Technique for Pic {
             let start = Instant::now();
             self.light_caches();
             cache_time += start.elapsed();
-            if feedback && pass + 1 < passes {
+            if feedback && pass + 1 < passes && !self.final_gather.is_empty() {
                 // The next pass's surfels read this pass's near field.
+                let start = Instant::now();
+                self.look_up_receivers();
+                receiver_time += start.elapsed();
                 let start = Instant::now();
                 self.gather_near_field();
                 gather_time += start.elapsed();
             }
         }
         let start = Instant::now();
+        self.look_up_receivers();
+        receiver_time += start.elapsed();
+        let start = Instant::now();
         self.correct_hidden_taps();
         let hidden_tap_time = start.elapsed();
         let start = Instant::now();
         self.gather_near_field();
         gather_time += start.elapsed();
+        let start = Instant::now();
+        self.final_gather.apply(&mut self.receiver_values);
+        receiver_time += start.elapsed();
         self.timings.clear();
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
@@ -1045,10 +1073,11 @@ impl Technique for Pic {
                 .stages
                 .push(("hidden cache taps", hidden_tap_time));
         }
+        self.timings.stages.push(("receiver values", receiver_time));
         if !self.final_gather.is_empty() {
-            self.timings.stages.push(("final gather", gather_time));
+            self.final_gather
+                .push_stages(&mut self.timings, gather_time);
         }
-        self.receiver_values = OnceLock::new();
         self.updates += 1;
         Ok(())
     }
@@ -1105,14 +1134,7 @@ impl Technique for Pic {
     }
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
-        Some(self.receiver_values.get_or_init(|| {
-            let mut values: Vec<Rgb> = (0..self.context.atlas.receivers.len() as u32)
-                .into_par_iter()
-                .map(|index| self.receiver_cached_irradiance(index))
-                .collect();
-            self.final_gather.apply(&mut values);
-            values
-        }))
+        Some(&self.receiver_values)
     }
 
     fn timings(&self) -> &StageTimings {
@@ -1132,6 +1154,7 @@ impl Technique for Pic {
                 bake.hierarchy.children.len() * 8 + bake.hierarchy.node_count() * 8,
             ),
             MemoryEntry::new("flux per node", self.flux.len() * 12),
+            MemoryEntry::new("receiver values", self.receiver_values.len() * 12),
             MemoryEntry::new(
                 if bake.projected_bands > 0 {
                     "links (node + f16 SH)"

@@ -347,15 +347,15 @@ impl Technique for Prm {
         }
         let final_gather = &mut self.final_gather;
         if !final_gather.is_empty() {
-            self.timings.time("final gather", || {
-                final_gather.update(
-                    context,
-                    frame.lights,
-                    |receiver| receiver_values[receiver as usize],
-                    true,
-                );
-                final_gather.apply(receiver_values);
-            });
+            let start = std::time::Instant::now();
+            final_gather.update(
+                context,
+                frame.lights,
+                |receiver| receiver_values[receiver as usize],
+                true,
+            );
+            final_gather.apply(receiver_values);
+            final_gather.push_stages(&mut self.timings, start.elapsed());
         }
         let lightmap = &mut self.lightmap;
         self.timings.time("dilation", || {

@@ -823,7 +823,9 @@ impl Technique for Srp {
             timings.time("radiance transport", || self.transport_radiance());
         }
         if !self.final_gather.is_empty() {
-            timings.time("final gather", || self.gather_near_field());
+            let start = std::time::Instant::now();
+            self.gather_near_field();
+            self.final_gather.push_stages(&mut timings, start.elapsed());
         }
         self.timings = timings;
         self.updates += 1;

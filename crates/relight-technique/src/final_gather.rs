@@ -38,22 +38,28 @@
 //!
 //! Costs, all at run time (no bake): the load traces 64 short rays per
 //! receiver plus the rays of the gathering ones; a frame computes the
-//! direct light at each hit texel and sums the rays' hits; the hits take
-//! 4 bytes a ray. On Sponza (sun; 378k receivers, of which about 170k to
-//! 200k gather over 64 rays, hitting 320k texels) that is 80 to 90 MB and
-//! 36 ms a frame on two cores for LightSkin (update 21 -> 59 ms), 60 ms
-//! for PIC (8-10 -> 75 ms; each hit texel's light is an SH lookup);
-//! `relight bench ../shared/scenes/sponza/scene.toml -t T --set
-//! final_gather=0|auto --shading-resolution 0x0`, medians, interleaved.
-//! Most of it is the direct light at the hit texels: the price of tracing
-//! the near field instead of interpolating it. The part of that light no
-//! frame changes, from the environment and emissive triangles (static
-//! geometry), is traced once when the gather is built, so a frame traces
-//! only its punctual lights: on the generated atriums, lit by a sky (16
-//! environment rays a hit against 2 for their sun and lamp), PRM's gather
-//! went from 152 to 12.7 ms a frame on the 100k atrium (`relight bench
-//! ATRIUM/scene.toml -t prm --frames 20 --shading-resolution 0x0`, the
-//! same images).
+//! direct light at each hit point and sums the rays' hits; the hits take
+//! 4 bytes a ray. On Sponza (sun; 378k receivers, of which 170k to 260k
+//! gather over 64 rays, or 128 for SRP, hitting 390k to 430k points) that
+//! is 80 to 170 MB, and two stages of `relight bench
+//! ../shared/scenes/sponza/scene.toml -t T --shading-resolution 0x0`:
+//! `final gather: hit light`, one shadow ray per hit point and punctual
+//! light (7.4-8.3 ms on two cores), and `final gather: sums`, the
+//! technique's value at each hit point plus the 12.8M (SRP 33M) scattered
+//! reads of the hits (LightSkin 6.1-7.4 ms, PRM 8.7-9.8, PIC 16.8-17.0,
+//! SRP 17.1-20.5). That is the price of tracing the near field instead of
+//! interpolating it. What was measured and did not pay: points shared by
+//! 2 x 2 lightmap texels (half the hit points, 5 ms less a frame, but
+//! Sponza's corner receivers went from 16.3 to 26.8 % error and the
+//! lightmap from 20.3 to 26.5 %, LightSkin), and the hits in tiles of 64k
+//! points with u16 indices (slower: 7.0 against 5.1 ms). The part of the
+//! hits' light no frame changes, from the environment and emissive
+//! triangles (static geometry), is traced once when the gather is built,
+//! so a frame traces only its punctual lights: on the generated atriums,
+//! lit by a sky (16 environment rays a hit against 2 for their sun and
+//! lamp), PRM's gather went from 152 to 12.7 ms a frame on the 100k
+//! atrium (`relight bench ATRIUM/scene.toml -t prm --frames 20
+//! --shading-resolution 0x0`, the same images).
 //!
 //! Data flow: [`FinalGather::build`] (scene context -> gathering receivers
 //! and their hit slots), then per frame [`FinalGather::update`] (lights and
@@ -68,6 +74,7 @@ use relight_core::Rgb;
 use relight_scene::Light;
 use relight_trace::direct::{morton_order, StaticDirect};
 use relight_trace::Ray;
+use std::time::{Duration, Instant};
 
 /// Marks a gather ray that escapes or meets a texel no receiver covers.
 const MISS: u32 = u32::MAX;
@@ -285,6 +292,9 @@ pub struct FinalGather {
     slot_gathering: Vec<u32>,
     /// Whether `values` hold a gather that later gathers' hits may reflect.
     gathered: bool,
+    /// Time spent in [`Self::light_hits`] since [`Self::push_stages`] last
+    /// took it: the shadow rays, reported apart from the rest.
+    hit_lighting_time: Duration,
     /// Per-frame, for techniques whose shading does not read per-receiver
     /// values: the gather's change to each gathering receiver's light as a
     /// dilated lightmap (zero elsewhere), which shading adds.
@@ -477,6 +487,7 @@ impl FinalGather {
             values: vec![Rgb::ZERO; gathering.len()],
             slot_gathering,
             gathered: false,
+            hit_lighting_time: Duration::ZERO,
             receivers: gathering,
             hits,
             slot_receivers,
@@ -539,6 +550,7 @@ impl FinalGather {
         if self.receivers.is_empty() {
             return;
         }
+        let start = Instant::now();
         self.slot_static.irradiance_batch(
             &context.direct(),
             lights,
@@ -546,6 +558,19 @@ impl FinalGather {
             &self.slot_normals,
             &mut self.slot_direct,
         );
+        self.hit_lighting_time += start.elapsed();
+    }
+
+    /// Records `total`, the time a frame spent on the gather, as two
+    /// stages: the direct light at the hit points (the shadow rays of
+    /// [`Self::light_hits`]) and the rest (summing the hits, the
+    /// technique's lookups at them, writing the values back).
+    pub fn push_stages(&mut self, timings: &mut crate::StageTimings, total: Duration) {
+        let lighting = std::mem::take(&mut self.hit_lighting_time).min(total);
+        timings.stages.push(("final gather: hit light", lighting));
+        timings
+            .stages
+            .push(("final gather: sums", total - lighting));
     }
 
     /// The second half of [`Self::update`]: gathers the hits' light (their
