@@ -44,10 +44,11 @@
 //! is 80 to 170 MB, and two stages of `relight bench
 //! ../shared/scenes/sponza/scene.toml -t T --shading-resolution 0x0`:
 //! `final gather: hit light`, one shadow ray per hit point and punctual
-//! light (7.4-8.3 ms on two cores), and `final gather: sums`, the
-//! technique's value at each hit point plus the 12.8M (SRP 33M) scattered
-//! reads of the hits (LightSkin 6.1-7.4 ms, PRM 8.7-9.8, PIC 16.8-17.0,
-//! SRP 17.1-20.5). That is the price of tracing the near field instead of
+//! light (7.5-8.5 ms on two cores), and `final gather: sums`, the
+//! technique's value at each hit point plus the 11M to 13M (SRP 33M)
+//! scattered reads of the hits (LightSkin 6.9-9.7 ms, PRM 8.7-9.5, PIC
+//! 8.6-11.0 with its receiver values apart, SRP 19.2-20.6; the README's
+//! Frames section). That is the price of tracing the near field instead of
 //! interpolating it. What was measured and did not pay: points shared by
 //! 2 x 2 lightmap texels (half the hit points, 5 ms less a frame, but
 //! Sponza's corner receivers went from 16.3 to 26.8 % error and the
@@ -269,7 +270,7 @@ pub struct FinalGather {
     rays: usize,
     /// Receiver index of each gathering receiver, ascending.
     receivers: Vec<u32>,
-    /// The slots each gathering receiver's rays hit, by tile of slots.
+    /// The slots each gathering receiver's rays hit.
     hits: HitMatrix,
     /// Per hit slot: the receiver hit and whether its back side was.
     slot_receivers: Vec<u32>,
@@ -706,7 +707,8 @@ impl FinalGather {
 /// as the slots each row's rays hit, ascending, misses left out (the mean
 /// still divides by every ray). Summing a frame's hits is 12.8M scattered
 /// reads on Sponza (200k gathering receivers x 64 rays into 391k slots);
-/// ascending rows read the radiosity in address order and skip no misses.
+/// ascending rows read the radiosity in address order, with no misses to
+/// test.
 /// Measured against tiles of 64k slots with u16 indices, whose radiosity
 /// would stay in a core's L2 cache: the tiles' per-row bookkeeping cost
 /// more than the cache saved (Sponza, LightSkin: 7.0 ms against 5.1 ms).
