@@ -16,7 +16,7 @@ use relight_technique::{
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 /// Run-time settings (one bake serves every value of them).
 #[derive(Clone, Copy, Debug)]
@@ -76,8 +76,9 @@ pub struct Srp {
     visible_cluster_starts: Vec<u32>,
     /// Last reconstruction's irradiance at the probe-visible receivers.
     visible_indirect: Vec<Rgb>,
-    /// Receiver-order copy of the lightmap, gathered only when asked for.
-    receiver_values: OnceLock<Vec<Rgb>>,
+    /// Receiver-order copy of the lightmap, gathered within the timed
+    /// update: what an engine reads each frame to fill its lightmap.
+    receiver_values: Vec<Rgb>,
     /// Indirect irradiance per receiver in cluster order, packed, and one
     /// zero slot after them: reconstruction writes each cluster's values
     /// in one run instead of scattering them over lightmap texels.
@@ -223,7 +224,7 @@ impl Srp {
             visible_in_cluster_order,
             visible_cluster_starts,
             visible_indirect: vec![Rgb::ZERO; visible.len()],
-            receiver_values: OnceLock::new(),
+            receiver_values: vec![Rgb::ZERO; context.atlas.receivers.len()],
             irradiance: vec![Rgb9e5::default(); receivers.len() + 1],
             slot_of_texel,
             timings: StageTimings::default(),
@@ -274,6 +275,21 @@ impl Srp {
             self.irradiance[slot] = Rgb9e5::from_rgb(value);
         }
         self.final_gather = final_gather;
+    }
+
+    /// Unpacks the lightmap into [`Self::receiver_values`], in receiver
+    /// order.
+    fn gather_receiver_values(&mut self) {
+        let width = self.context.atlas.width as usize;
+        let (irradiance, slot_of_texel) = (&self.irradiance, &self.slot_of_texel);
+        self.receiver_values
+            .par_iter_mut()
+            .with_min_len(1024)
+            .zip(self.context.atlas.receivers.texels.par_iter())
+            .for_each(|(value, &[x, y])| {
+                *value =
+                    irradiance[slot_of_texel[y as usize * width + x as usize] as usize].to_rgb();
+            });
     }
 
     /// The probe radiance vector (lambda) after the last update.
@@ -792,7 +808,6 @@ impl Technique for Srp {
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
-        self.receiver_values = OnceLock::new();
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
         timings.time("direct lightmap", || {
@@ -827,6 +842,7 @@ impl Technique for Srp {
             self.gather_near_field();
             self.final_gather.push_stages(&mut timings, start.elapsed());
         }
+        timings.time("receiver values", || self.gather_receiver_values());
         self.timings = timings;
         self.updates += 1;
         Ok(())
@@ -882,19 +898,7 @@ impl Technique for Srp {
     }
 
     fn receiver_irradiance(&self) -> Option<&[Rgb]> {
-        Some(self.receiver_values.get_or_init(|| {
-            let width = self.context.atlas.width as usize;
-            self.context
-                .atlas
-                .receivers
-                .texels
-                .par_iter()
-                .map(|&[x, y]| {
-                    self.irradiance[self.slot_of_texel[y as usize * width + x as usize] as usize]
-                        .to_rgb()
-                })
-                .collect()
-        }))
+        Some(&self.receiver_values)
     }
 
     fn bake_facts(&self) -> Vec<(&'static str, String)> {
@@ -990,6 +994,7 @@ impl Technique for Srp {
                 self.irradiance.len() * 4,
             ),
             MemoryEntry::new("lightmap slot per texel", self.slot_of_texel.len() * 4),
+            MemoryEntry::new("receiver values", self.receiver_values.len() * 12),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",
                 bake.radiance.clusters.matrix_bytes()
