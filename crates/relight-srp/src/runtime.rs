@@ -368,22 +368,13 @@ impl Srp {
         }
         self.gathered_direct.clear();
         self.gathered_direct.resize(self.needed.len(), Rgb::ZERO);
-        if visible_static.is_some() {
-            direct.irradiance_batch_over_static(
-                frame.lights,
-                &self.gathered_positions,
-                &self.gathered_normals,
-                &self.gathered_static,
-                &mut self.gathered_direct,
-            );
-        } else {
-            direct.irradiance_batch(
-                frame.lights,
-                &self.gathered_positions,
-                &self.gathered_normals,
-                &mut self.gathered_direct,
-            );
-        }
+        direct.irradiance_batch_over_static(
+            frame.lights,
+            &self.gathered_positions,
+            &self.gathered_normals,
+            visible_static.map(|_| self.gathered_static.as_slice()),
+            &mut self.gathered_direct,
+        );
         for (&texel, &value) in self.needed.iter().zip(&self.gathered_direct) {
             self.visible_direct[texel as usize] = value;
         }

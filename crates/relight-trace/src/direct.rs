@@ -111,12 +111,8 @@ impl StaticDirect {
         normals: &[Vec3],
         irradiance: &mut [Rgb],
     ) {
-        match self.at(direct, points, normals) {
-            Some(fixed) => {
-                direct.irradiance_batch_over_static(lights, points, normals, fixed, irradiance)
-            }
-            None => direct.irradiance_batch(lights, points, normals, irradiance),
-        }
+        let fixed = self.at(direct, points, normals);
+        direct.irradiance_batch_over_static(lights, points, normals, fixed, irradiance);
     }
 
     pub fn memory_bytes(&self) -> usize {
@@ -338,15 +334,19 @@ impl<'a> DirectLight<'a> {
 
     /// [`Self::irradiance_batch`] given its static part from
     /// [`Self::static_irradiance_batch`] over the same points: only the
-    /// punctual lights are traced.
+    /// punctual lights are traced. `None` (a scene without static light,
+    /// see [`StaticDirect::at`]) is [`Self::irradiance_batch`] itself.
     pub fn irradiance_batch_over_static(
         &self,
         lights: &[Light],
         points: &[Vec3],
         normals: &[Vec3],
-        static_irradiance: &[Rgb],
+        static_irradiance: Option<&[Rgb]>,
         irradiance: &mut [Rgb],
     ) {
+        let Some(static_irradiance) = static_irradiance else {
+            return self.irradiance_batch(lights, points, normals, irradiance);
+        };
         assert_eq!(points.len(), static_irradiance.len());
         self.batch(points, normals, irradiance, |index, cache| {
             let origin = points[index] + normals[index] * self.ray_epsilon;
@@ -763,7 +763,7 @@ mod tests {
         let mut fixed = vec![Rgb::ZERO; points.len()];
         service.static_irradiance_batch(&points, &normals, &mut fixed);
         let mut split = vec![Rgb::ZERO; points.len()];
-        service.irradiance_batch_over_static(&lights, &points, &normals, &fixed, &mut split);
+        service.irradiance_batch_over_static(&lights, &points, &normals, Some(&fixed), &mut split);
         for (index, (a, b)) in together.iter().zip(&split).enumerate() {
             assert!(
                 (*a - *b).abs().max_element() <= 1e-5 * a.max_element().max(1.0),
