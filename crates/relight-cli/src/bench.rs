@@ -36,6 +36,16 @@ pub struct BenchReport {
     /// static scene; apart from `total`, which is the GI update alone.
     pub shading: Option<StageReport>,
     pub shaded_points: usize,
+    /// The lightmap texels an engine uploads (RGBA16F, every atlas texel,
+    /// gutters included) made from the update's receiver values; `None`
+    /// for techniques without a lightmap.
+    pub lightmap_image: Option<StageReport>,
+    /// The update plus the lightmap image: an engine's GI cost a frame.
+    pub engine_frame: Option<StageReport>,
+    /// One refresh of the irradiance volume for dynamic objects (six
+    /// lookups of light in space a voxel), which engines run at their own
+    /// rate; `None` with `--volume-cells 0`.
+    pub irradiance_volume: Option<StageReport>,
     pub memory: Vec<(String, usize)>,
     pub memory_total_bytes: usize,
 }
@@ -128,12 +138,14 @@ fn shade(technique: &dyn Technique, points: &[ShadedPoint], out: &mut [Rgb]) {
 }
 
 /// `shading_resolution` picks the shading stage's image size (`None`: the
-/// scene camera's; a zero side: no shading stage).
+/// scene camera's; a zero side: no shading stage); `volume_cells` the
+/// irradiance volume's voxels along the scene's longest side (0: none).
 pub fn run(
     context: &SceneContext,
     technique: &mut dyn Technique,
     frames: u32,
     shading_resolution: Option<[u32; 2]>,
+    volume_cells: u32,
     progress: &dyn Progress,
 ) -> Result<BenchReport> {
     let frames = frames.max(1);
@@ -151,6 +163,13 @@ pub fn run(
     let mut stage_names: Vec<&'static str> = Vec::new();
     let mut stage_samples: Vec<Vec<f64>> = Vec::new();
     let mut totals = Vec::with_capacity(frames as usize);
+    let layout = relight_engine::LightmapLayout::new(&context.atlas);
+    let mut lightmap_texels = vec![half::f16::ZERO; layout.texel_count() * 4];
+    let (mut lightmap_samples, mut engine_frames) = (Vec::new(), Vec::new());
+    let (lo, hi) = context.scene.mesh.bounds();
+    let grid = (volume_cells > 0).then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells));
+    let mut volume_texels = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
+    let mut volume_samples = Vec::new();
     progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
         let lights = orbit(base, centre, index, frames);
@@ -174,7 +193,20 @@ pub fn run(
             };
             stage_samples[slot].push(duration.as_secs_f64() * 1e3);
         }
-        totals.push(timings.total().as_secs_f64() * 1e3);
+        let update_ms = timings.total().as_secs_f64() * 1e3;
+        totals.push(update_ms);
+        if let Some(values) = technique.receiver_irradiance() {
+            let start = std::time::Instant::now();
+            layout.fill_rgba16f(values, &mut lightmap_texels);
+            let lightmap_ms = start.elapsed().as_secs_f64() * 1e3;
+            lightmap_samples.push(lightmap_ms);
+            engine_frames.push(update_ms + lightmap_ms);
+        }
+        if let Some(grid) = &grid {
+            let start = std::time::Instant::now();
+            relight_engine::fill_volume(grid, &*technique, &mut volume_texels);
+            volume_samples.push(start.elapsed().as_secs_f64() * 1e3);
+        }
         if !points.is_empty() {
             let start = std::time::Instant::now();
             shade(&*technique, &points, &mut shaded);
@@ -206,6 +238,18 @@ pub fn run(
             )
         }),
         shaded_points: points.len(),
+        lightmap_image: (!lightmap_samples.is_empty()).then(|| {
+            stage_report(
+                &format!("lightmap RGBA16F {}x{}", layout.width, layout.height),
+                lightmap_samples,
+            )
+        }),
+        engine_frame: (!engine_frames.is_empty())
+            .then(|| stage_report("update + lightmap", engine_frames)),
+        irradiance_volume: grid.map(|grid| {
+            let [x, y, z] = grid.resolution.to_array();
+            stage_report(&format!("irradiance volume {x}x{y}x{z}"), volume_samples)
+        }),
         memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
         memory,
     })
@@ -232,6 +276,19 @@ impl fmt::Display for BenchReport {
                 "{:<28} {:>12.3} {:>12.3}   (not in total; {} pixels see the static scene)",
                 shading.stage, shading.median_ms, shading.p95_ms, self.shaded_points
             )?;
+        }
+        for (stage, note) in [
+            (&self.lightmap_image, "(the texels an engine uploads)"),
+            (&self.engine_frame, "(an engine's GI cost a frame)"),
+            (&self.irradiance_volume, "(one refresh, at the engine's rate)"),
+        ] {
+            if let Some(stage) = stage {
+                writeln!(
+                    f,
+                    "{:<28} {:>12.3} {:>12.3}   {note}",
+                    stage.stage, stage.median_ms, stage.p95_ms
+                )?;
+            }
         }
         writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;
         for (buffer, bytes) in &self.memory {

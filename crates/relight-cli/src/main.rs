@@ -123,6 +123,37 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Write the scene as glTF 2.0 with a technique's lightmap (KTX2,
+    /// through MOZ_lightmap and TEXCOORD_1) and irradiance volume (KTX2 3D
+    /// texture in Bevy's layout), for any engine.
+    Export {
+        scene: PathBuf,
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        /// Texel format of the KTX2 files: rgba16f or rgb9e5.
+        #[arg(long, default_value = "rgba16f", value_parser = parse_texel_format)]
+        format: relight_engine::TexelFormat,
+        /// Zstandard supercompression level of the KTX2 files (1-22; 0:
+        /// none).
+        #[arg(long, default_value_t = 10)]
+        zstd: i32,
+        /// Also write the lightmap with direct light added
+        /// (lightmap-full.ktx2), for engines that draw no lights.
+        #[arg(long)]
+        with_direct: bool,
+        /// Irradiance-volume voxels along the scene's longest side (cubic
+        /// voxels over its bounds); 0: no volume.
+        #[arg(long, default_value_t = 16)]
+        volume_cells: u32,
+        /// Updates before the export, so that techniques that feed last
+        /// frame's light back reach all bounces.
+        #[arg(long, default_value_t = 5)]
+        frames: u32,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Precompute a technique's bake file.
     Bake {
         scene: PathBuf,
@@ -170,6 +201,10 @@ enum Command {
         /// stage.
         #[arg(long, value_parser = parse_resolution)]
         shading_resolution: Option<[u32; 2]>,
+        /// Irradiance-volume voxels along the scene's longest side, timed
+        /// as one refresh a frame; 0: no volume stage.
+        #[arg(long, default_value_t = 16)]
+        volume_cells: u32,
         /// Also write the report as JSON.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -415,6 +450,16 @@ fn check_estimate(
         }
     }
     Ok(())
+}
+
+fn parse_texel_format(text: &str) -> Result<relight_engine::TexelFormat, String> {
+    match text.to_ascii_lowercase().as_str() {
+        "rgba16f" => Ok(relight_engine::TexelFormat::Rgba16Float),
+        "rgb9e5" => Ok(relight_engine::TexelFormat::Rgb9e5),
+        _ => Err(format!(
+            "'{text}' is not a texel format: use rgba16f or rgb9e5"
+        )),
+    }
 }
 
 fn create_technique(
@@ -694,6 +739,7 @@ fn run(cli: Cli) -> Result<()> {
             options,
             frames,
             shading_resolution,
+            volume_cells,
             json,
         } => {
             let context = load_context(&scene, &options, quiet)?;
@@ -703,12 +749,58 @@ fn run(cli: Cli) -> Result<()> {
                 instance.as_mut(),
                 frames,
                 shading_resolution,
+                volume_cells,
                 &Bars::new(quiet),
             )?;
             say!("{report}");
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_string_pretty(&report)?)
                     .with_context(|| format!("{}: cannot write", path.display()))?;
+            }
+            Ok(())
+        }
+        Command::Export {
+            scene,
+            technique,
+            options,
+            format,
+            zstd,
+            with_direct,
+            volume_cells,
+            frames,
+            output,
+        } => {
+            if !(0..=22).contains(&zstd) {
+                bail!("--zstd {zstd}: give a level from 1 to 22, or 0 for none");
+            }
+            let context = load_context(&scene, &options, quiet)?;
+            let mut instance = create_technique(&context, &technique, quiet)?;
+            let lights = context.scene.lights.clone();
+            for index in 0..frames.max(1) {
+                instance.update(&Frame {
+                    lights: &lights,
+                    index: index as u64,
+                })?;
+            }
+            let (lo, hi) = context.scene.mesh.bounds();
+            let settings = relight_engine::ExportSettings {
+                format,
+                zstd_level: (zstd > 0).then_some(zstd),
+                with_direct,
+                volume: (volume_cells > 0)
+                    .then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells)),
+            };
+            let summary = relight_engine::export_scene(
+                &context,
+                instance.as_ref(),
+                &lights,
+                &settings,
+                &output,
+            )?;
+            if !quiet {
+                for file in &summary.files {
+                    eprintln!("wrote {}", file.display());
+                }
             }
             Ok(())
         }

@@ -18,9 +18,11 @@
 //! - Units: relight is radiometric and takes glTF light values as radiometric
 //!   as is. `KHR_lights_punctual` point and spot intensities (candela) times
 //!   colour become radiant intensity in W/sr per channel; directional
-//!   intensities (lux) times colour become irradiance in W/m^2. No photometric
-//!   conversion (683 lm/W) is applied, on purpose: exporters' values are
-//!   rarely calibrated, and a 1:1 mapping keeps scenes predictable. `range`
+//!   intensities (lux) times colour become irradiance in W/m^2: relight's
+//!   one lumen per watt ([`relight_core::LUMENS_PER_WATT`]), not the
+//!   physical 683 lm/W, on purpose: exporters' values are rarely
+//!   calibrated, a 1:1 mapping keeps scenes predictable, and relight's own
+//!   export and engine bridge use the same factor. `range`
 //!   is ignored (physical inverse-square falloff).
 //! - Node transforms are applied to positions only; relight uses geometric
 //!   normals. A transform with negative determinant mirrors the geometry, so

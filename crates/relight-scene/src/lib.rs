@@ -19,4 +19,6 @@ mod scene_file;
 
 pub use error::SceneError;
 pub use model::*;
-pub use scene_file::{load_mesh, load_scene, parse_scene_file, SceneFile, TECHNIQUE_SECTIONS};
+pub use scene_file::{
+    is_mesh_file, load_mesh, load_scene, parse_scene_file, SceneFile, TECHNIQUE_SECTIONS,
+};

@@ -408,11 +408,36 @@ pub(crate) struct LoadedMesh {
     pub warnings: Vec<String>,
 }
 
-/// Reads a scene file, its mesh, materials and textures.
+/// Reads a scene file (TOML), or a mesh file (OBJ, glTF, GLB) as a scene
+/// of its own, with its mesh, materials and textures.
 pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
-    let file = parse_scene_file(path)?;
+    let file = if is_mesh_file(path) {
+        // A mesh file on its own is a scene with its own lights and camera
+        // (glTF) or an automatic framing: what an engine hands over.
+        SceneFile {
+            path: path.to_path_buf(),
+            mesh: path.to_path_buf(),
+            camera: None,
+            lights: Vec::new(),
+            environment: Environment::default(),
+            extra: BTreeMap::new(),
+        }
+    } else {
+        parse_scene_file(path)?
+    };
     let loaded = load_mesh_file(&file.mesh)?;
     finish_scene(file, loaded)
+}
+
+/// True for the mesh formats relight loads (OBJ, glTF, GLB), by extension.
+pub fn is_mesh_file(path: &Path) -> bool {
+    path.extension()
+        .and_then(|extension| extension.to_str())
+        .is_some_and(|extension| {
+            ["obj", "gltf", "glb"]
+                .iter()
+                .any(|known| extension.eq_ignore_ascii_case(known))
+        })
 }
 
 fn load_mesh_file(path: &Path) -> Result<LoadedMesh, SceneError> {

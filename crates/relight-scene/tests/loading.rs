@@ -268,6 +268,18 @@ fn scene_without_camera_gets_a_framing_camera_and_a_warning() {
     assert!(scene.camera.eye.z > 1.0);
 }
 
+#[test]
+fn a_mesh_file_is_a_scene_of_its_own() {
+    let folder = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/cornell-box");
+    let from_toml = load_scene(&folder.join("scene.toml")).unwrap();
+    let from_obj = load_scene(&folder.join("mesh.obj")).unwrap();
+    assert_eq!(from_obj.mesh.triangles, from_toml.mesh.triangles);
+    assert_eq!(from_obj.mesh.positions, from_toml.mesh.positions);
+    // The OBJ has no camera and its light is emissive geometry.
+    assert!(from_obj.warnings.iter().any(|w| w.contains("no camera")));
+    assert_eq!(from_obj.emissive_triangles(), from_toml.emissive_triangles());
+}
+
 // ---------------------------------------------------------------- OBJ / MTL
 
 fn obj_error(obj: impl AsRef<[u8]>) -> SceneError {

@@ -1,0 +1,42 @@
+//! What a game engine takes from relight: the lightmap it uploads and the
+//! irradiance volume it samples for dynamic objects, in the engine's units
+//! and layouts; KTX2 textures; and the glTF export (`relight export`).
+//!
+//! Data flow: a technique updates (relight-technique); [`LightmapLayout`]
+//! turns its receiver values into lightmap texels each frame, one parallel
+//! pass that applies the atlas's dilation as it goes; [`fill_volume`]
+//! evaluates its light in space at the voxels of a [`VolumeGrid`] in
+//! Bevy's `IrradianceVolume` layout; [`Ktx2Texture`] writes either as a
+//! KTX2 file, and [`export_scene`] writes the scene with them as glTF.
+//!
+//! Units: a texel is E/pi in cd/m^2 at [`LUMENS_PER_WATT`] (one lumen a
+//! watt: see its doc), the radiance of a white Lambertian surface under
+//! irradiance E, which engines multiply by the base colour. This crate
+//! has no engine dependency, so the CLI's export and benchmark use it
+//! without building one; the Bevy bridge builds on it.
+
+mod export;
+mod ktx2_file;
+mod lightmap;
+mod units;
+pub mod volume;
+
+pub use export::{export_scene, ExportError, ExportSettings, ExportSummary};
+pub use ktx2_file::{f16_of, rgb9e5_gpu, rgb9e5_gpu_decode, Ktx2Error, Ktx2Texture, TexelFormat};
+pub use lightmap::{receiver_irradiance, LightmapLayout};
+pub use units::{
+    colour_and_scale, directional_light_lux, ev100_matching_relight, irradiance_of_texel,
+    lightmap_texel, look_rotation, point_light_lumens, LUMENS_PER_WATT,
+};
+pub use volume::{fill_volume, VolumeGrid};
+
+#[cfg(test)]
+pub(crate) mod tests {
+    /// A scene shipped with relight, by folder name.
+    pub fn shipped(name: &str) -> std::path::PathBuf {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../scenes")
+            .join(name)
+            .join("scene.toml")
+    }
+}

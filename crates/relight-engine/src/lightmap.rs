@@ -1,0 +1,133 @@
+//! The lightmap an engine uploads: every atlas texel in the engine's
+//! convention, refilled each frame from a technique's receiver values.
+
+use crate::units::lightmap_texel;
+use half::f16;
+use rayon::prelude::*;
+use relight_core::Rgb;
+use relight_scene::atlas::Atlas;
+
+/// Rows a rayon task fills: enough to amortise the task, few enough that
+/// two cores share a 1024-row atlas evenly.
+const ROWS_PER_TASK: usize = 16;
+
+/// Which texel each atlas texel copies, fixed at creation so that a frame
+/// is one parallel pass with no scatter and no dilation step.
+#[derive(Clone, Debug)]
+pub struct LightmapLayout {
+    pub width: u32,
+    pub height: u32,
+    /// The receiver each texel shows: its own, the covered texel a gutter
+    /// texel copies (chains of the atlas's dilation resolved), or
+    /// `u32::MAX` for texels that cover nothing (they stay black).
+    receiver_of_texel: Vec<u32>,
+}
+
+impl LightmapLayout {
+    pub fn new(atlas: &Atlas) -> Self {
+        Self {
+            width: atlas.width,
+            height: atlas.height,
+            receiver_of_texel: atlas.dilated_receiver_of_texel(),
+        }
+    }
+
+    pub fn texel_count(&self) -> usize {
+        self.receiver_of_texel.len()
+    }
+
+    /// Fills `texels` (RGBA16F, `width * height * 4` halves, row 0 first:
+    /// glTF's and Bevy's V = 0) with `per_receiver` irradiance (W/m^2)
+    /// converted by [`lightmap_texel`]; alpha is 1. The same result as the
+    /// atlas's scatter and dilation, in parallel rows.
+    pub fn fill_rgba16f(&self, per_receiver: &[Rgb], texels: &mut [f16]) {
+        assert_eq!(texels.len(), self.texel_count() * 4);
+        let width = self.width as usize;
+        texels
+            .par_chunks_mut(width * 4 * ROWS_PER_TASK)
+            .zip(self.receiver_of_texel.par_chunks(width * ROWS_PER_TASK))
+            .for_each(|(out, receivers)| {
+                for (texel, &receiver) in out.chunks_exact_mut(4).zip(receivers) {
+                    let value = match per_receiver.get(receiver as usize) {
+                        Some(&irradiance) => lightmap_texel(irradiance),
+                        None => Rgb::ZERO,
+                    };
+                    texel[0] = crate::f16_of(value.x);
+                    texel[1] = crate::f16_of(value.y);
+                    texel[2] = crate::f16_of(value.z);
+                    texel[3] = f16::ONE;
+                }
+            });
+    }
+
+    /// The lightmap in engine units as linear RGB, for files.
+    pub fn to_rgb(&self, per_receiver: &[Rgb]) -> Vec<Rgb> {
+        self.receiver_of_texel
+            .par_iter()
+            .map(|&receiver| {
+                per_receiver
+                    .get(receiver as usize)
+                    .map_or(Rgb::ZERO, |&irradiance| lightmap_texel(irradiance))
+            })
+            .collect()
+    }
+}
+
+/// A technique's irradiance at every receiver: its stored lightmap, or one
+/// lookup a receiver for techniques without one.
+pub fn receiver_irradiance(
+    context: &relight_technique::SceneContext,
+    technique: &dyn relight_technique::Technique,
+) -> Vec<Rgb> {
+    if let Some(values) = technique.receiver_irradiance() {
+        return values.to_vec();
+    }
+    let receivers = &context.atlas.receivers;
+    (0..receivers.len())
+        .into_par_iter()
+        .map(|index| {
+            technique.indirect_irradiance(&relight_technique::SurfacePoint {
+                position: receivers.positions[index],
+                normal: receivers.normals[index],
+                triangle: receivers.triangles[index],
+                barycentric: receivers.barycentrics[index],
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use relight_scene::atlas::TexelDensity;
+
+    #[test]
+    fn texels_equal_the_atlas_scatter_and_dilation_in_engine_units() {
+        let scene = relight_scene::load_scene(&crate::tests::shipped("cornell-box")).unwrap();
+        let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(32)).unwrap();
+        let per_receiver: Vec<Rgb> = (0..atlas.receivers.len())
+            .map(|index| Rgb::new(index as f32, 1.0, 2.0 * index as f32) * 0.01)
+            .collect();
+        let expected = atlas.to_lightmap(&per_receiver);
+        let layout = LightmapLayout::new(&atlas);
+        let mut texels = vec![f16::ZERO; layout.texel_count() * 4];
+        layout.fill_rgba16f(&per_receiver, &mut texels);
+        let mut covered = 0;
+        for (index, irradiance) in expected.iter().enumerate() {
+            let want = lightmap_texel(*irradiance);
+            let got = Rgb::new(
+                texels[4 * index].to_f32(),
+                texels[4 * index + 1].to_f32(),
+                texels[4 * index + 2].to_f32(),
+            );
+            // Half floats keep 11 significant bits: relative 2^-11.
+            assert!(
+                (got - want).abs().max_element() <= want.max_element() / 2048.0 + 1e-7,
+                "texel {index}: {got} against {want}"
+            );
+            assert_eq!(texels[4 * index + 3], f16::ONE);
+            covered += usize::from(want.max_element() > 0.0);
+        }
+        assert!(covered > atlas.receivers.len() / 2);
+    }
+}
