@@ -167,7 +167,8 @@ pub fn run(
     let mut lightmap_texels = vec![half::f16::ZERO; layout.texel_count() * 4];
     let (mut lightmap_samples, mut engine_frames) = (Vec::new(), Vec::new());
     let (lo, hi) = context.scene.mesh.bounds();
-    let grid = (volume_cells > 0).then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells));
+    let grid =
+        (volume_cells > 0).then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells));
     let mut volume_texels = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
     let mut volume_samples = Vec::new();
     progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
@@ -280,7 +281,10 @@ impl fmt::Display for BenchReport {
         for (stage, note) in [
             (&self.lightmap_image, "(the texels an engine uploads)"),
             (&self.engine_frame, "(an engine's GI cost a frame)"),
-            (&self.irradiance_volume, "(one refresh, at the engine's rate)"),
+            (
+                &self.irradiance_volume,
+                "(one refresh, at the engine's rate)",
+            ),
         ] {
             if let Some(stage) = stage {
                 writeln!(

@@ -467,56 +467,14 @@ fn create_technique(
     options: &TechniqueOptions,
     quiet: bool,
 ) -> Result<Box<dyn relight_technique::Technique>> {
-    let kind = techniques::find(&options.technique)?;
     let pairs = options.pairs()?;
-    let bars = Bars::new(quiet);
-    let payload = match (&options.bake, kind.needs_bake()) {
-        (Some(path), true) => {
-            let (header, payload) = relight_technique::read_bake(path)?;
-            if let Some(shard) = header.shard {
-                bail!(
-                    "{}: holds shard {shard} of a sharded bake: join all {} shards with `relight merge PART... -o FILE` and pass that file",
-                    path.display(),
-                    shard.count
-                );
-            }
-            if header.technique != kind.name() {
-                bail!(
-                    "{}: this bake is for technique '{}', not '{}'",
-                    path.display(),
-                    header.technique,
-                    kind.name()
-                );
-            }
-            if header.scene_fingerprint != context.fingerprint() {
-                bail!(
-                    "{}: this bake was made for another scene or lightmap resolution; bake again",
-                    path.display()
-                );
-            }
-            if header.parameters_fingerprint
-                != relight_technique::parameters_fingerprint(kind, &context.scene, &pairs)
-            {
-                tracing::warn!(
-                    "{}: baked with other bake parameters ({}) than given; the bake's are used",
-                    path.display(),
-                    kind.bake_parameters().join(", ")
-                );
-            }
-            Some(payload)
-        }
-        (None, true) => {
-            tracing::info!("no --bake given: baking {} in memory", kind.name());
-            Some(kind.bake(context, &pairs, &bars)?)
-        }
-        (Some(path), false) => bail!(
-            "{}: technique '{}' needs no bake; drop --bake",
-            path.display(),
-            kind.name()
-        ),
-        (None, false) => None,
-    };
-    Ok(kind.create(context.clone(), payload.as_deref(), &pairs, &bars)?)
+    Ok(relight_engine::open_technique(
+        context,
+        &options.technique,
+        &pairs,
+        options.bake.as_deref(),
+        &Bars::new(quiet),
+    )?)
 }
 
 fn main() {

@@ -2,7 +2,8 @@
 //! irradiance volume it samples for dynamic objects, in the engine's units
 //! and layouts; KTX2 textures; and the glTF export (`relight export`).
 //!
-//! Data flow: a technique updates (relight-technique); [`LightmapLayout`]
+//! Data flow: [`techniques`] names every technique and opens one from a
+//! bake file; the technique updates (relight-technique); [`LightmapLayout`]
 //! turns its receiver values into lightmap texels each frame, one parallel
 //! pass that applies the atlas's dilation as it goes; [`fill_volume`]
 //! evaluates its light in space at the voxels of a [`VolumeGrid`] in
@@ -18,12 +19,14 @@
 mod export;
 mod ktx2_file;
 mod lightmap;
+pub mod techniques;
 mod units;
 pub mod volume;
 
 pub use export::{export_scene, ExportError, ExportSettings, ExportSummary};
 pub use ktx2_file::{f16_of, rgb9e5_gpu, rgb9e5_gpu_decode, Ktx2Error, Ktx2Texture, TexelFormat};
 pub use lightmap::{receiver_irradiance, LightmapLayout};
+pub use techniques::{open_technique, OpenError};
 pub use units::{
     colour_and_scale, directional_light_lux, ev100_matching_relight, irradiance_of_texel,
     lightmap_texel, look_rotation, point_light_lumens, LUMENS_PER_WATT,

@@ -277,7 +277,10 @@ fn a_mesh_file_is_a_scene_of_its_own() {
     assert_eq!(from_obj.mesh.positions, from_toml.mesh.positions);
     // The OBJ has no camera and its light is emissive geometry.
     assert!(from_obj.warnings.iter().any(|w| w.contains("no camera")));
-    assert_eq!(from_obj.emissive_triangles(), from_toml.emissive_triangles());
+    assert_eq!(
+        from_obj.emissive_triangles(),
+        from_toml.emissive_triangles()
+    );
 }
 
 // ---------------------------------------------------------------- OBJ / MTL
