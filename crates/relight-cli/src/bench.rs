@@ -164,7 +164,7 @@ pub fn run(
     let mut stage_samples: Vec<Vec<f64>> = Vec::new();
     let mut totals = Vec::with_capacity(frames as usize);
     let layout = relight_engine::LightmapLayout::new(&context.atlas);
-    let mut lightmap_texels = vec![half::f16::ZERO; layout.texel_count() * 4];
+    let mut lightmap_bytes = vec![0u8; layout.texel_count() * 8];
     let (mut lightmap_samples, mut engine_frames) = (Vec::new(), Vec::new());
     let (lo, hi) = context.scene.mesh.bounds();
     let grid =
@@ -177,6 +177,7 @@ pub fn run(
         technique.update(&Frame {
             lights: &lights,
             index: index as u64,
+            camera: None,
         })?;
         progress.advance(1);
         if index < WARM_UP_FRAMES {
@@ -198,7 +199,7 @@ pub fn run(
         totals.push(update_ms);
         if let Some(values) = technique.receiver_irradiance() {
             let start = std::time::Instant::now();
-            layout.fill_rgba16f(values, &mut lightmap_texels);
+            layout.fill_rgba16f(values, None, &mut lightmap_bytes);
             let lightmap_ms = start.elapsed().as_secs_f64() * 1e3;
             lightmap_samples.push(lightmap_ms);
             engine_frames.push(update_ms + lightmap_ms);

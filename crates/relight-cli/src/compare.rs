@@ -162,6 +162,7 @@ pub fn run(
             technique.update(&Frame {
                 lights: &lights,
                 index: index as u64,
+                camera: None,
             })?;
             update_ms.push(technique.timings().total().as_secs_f64() * 1e3);
         }

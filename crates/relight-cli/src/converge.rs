@@ -194,6 +194,7 @@ pub fn run(
         instance.update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })?;
         let update_ms = instance.timings().total().as_secs_f64() * 1e3;
         let bounces = instance.reference_bounces(settings.max_bounces);

@@ -581,6 +581,7 @@ fn run(cli: Cli) -> Result<()> {
                 instance.update(&Frame {
                     lights: &lights,
                     index: index as u64,
+                    camera: None,
                 })?;
                 // Techniques that move meshes hand the renderer this frame's
                 // geometry; the others render the static scene.
@@ -738,6 +739,7 @@ fn run(cli: Cli) -> Result<()> {
                 instance.update(&Frame {
                     lights: &lights,
                     index: index as u64,
+                    camera: None,
                 })?;
             }
             let (lo, hi) = context.scene.mesh.bounds();

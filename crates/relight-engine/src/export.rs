@@ -9,9 +9,11 @@
 //!   loader reads it back); lights (`KHR_lights_punctual`) and the camera.
 //! - `textures/albedo-N.png`: albedo textures, sRGB.
 //! - `lightmap-indirect.ktx2` (and `lightmap-full.ktx2` with direct light
-//!   added): texels of [`crate::lightmap_texel`], referenced by every
-//!   material's `MOZ_lightmap` extension (`texCoord` 1, `intensity` 1) and
-//!   described in the mesh node's `extras.relight`.
+//!   added): texels of [`crate::lightmap_texel`] (E/pi, Bevy's
+//!   convention), referenced by every material's `MOZ_lightmap` extension
+//!   (`texCoord` 1, `intensity` pi, since three.js and Hubs read texel
+//!   times intensity as irradiance) and described in the mesh node's
+//!   `extras.relight`.
 //! - `irradiance-volume.ktx2`: a 3D texture in Bevy's
 //!   `IrradianceVolume` layout (see [`crate::volume`]), its box in the
 //!   scene's `extras.relight.irradianceVolume`.
@@ -26,7 +28,7 @@
 
 use crate::ktx2_file::{Ktx2Error, Ktx2Texture, TexelFormat};
 use crate::lightmap::{receiver_irradiance, LightmapLayout};
-use crate::units::{colour_and_scale, look_rotation, LUMENS_PER_WATT};
+use crate::units::{colour_and_scale, look_rotation, roughness_of, LUMENS_PER_WATT};
 use crate::volume::{fill_volume, VolumeGrid};
 use glam::{Vec2, Vec3};
 use relight_core::Rgb;
@@ -319,7 +321,9 @@ fn gltf_document(
 
     // Texture 0 is the lightmap; albedo textures follow.
     let lightmap_texture = 0;
-    let mut images = vec![json!({ "uri": "lightmap-indirect.ktx2", "mimeType": "image/ktx2" })];
+    // No mimeType: core glTF names only PNG and JPEG, and readers (Bevy's
+    // among them) pick the KTX2 loader by the file's extension.
+    let mut images = vec![json!({ "uri": "lightmap-indirect.ktx2" })];
     let mut textures = vec![json!({ "source": 0, "sampler": 0 })];
     for (index, uri) in albedo_textures.iter().enumerate() {
         images.push(json!({ "uri": uri, "mimeType": "image/png" }));
@@ -341,7 +345,9 @@ fn gltf_document(
                 "name": material.name,
                 "pbrMetallicRoughness": pbr,
                 "extensions": {
-                    "MOZ_lightmap": { "index": lightmap_texture, "texCoord": 1, "intensity": 1.0 },
+                    // three.js and Hubs read texel x intensity as
+                    // irradiance; the texels hold E / pi.
+                    "MOZ_lightmap": { "index": lightmap_texture, "texCoord": 1, "intensity": std::f32::consts::PI },
                 },
             });
             let (colour, strength) = colour_and_scale(material.emission);
@@ -416,17 +422,6 @@ fn gltf_document(
         "buffers": [{ "uri": "scene.bin", "byteLength": buffer.bytes.len() }],
     });
     (document, buffer.bytes)
-}
-
-/// The glTF roughness relight's loader turns back into `exponent`
-/// (exponent = 2 / roughness^4 - 2); Lambertian materials (exponent at
-/// most 1) are fully rough.
-fn roughness_of(exponent: f32) -> f32 {
-    if exponent > 1.0 {
-        (2.0 / (exponent + 2.0)).powf(0.25)
-    } else {
-        1.0
-    }
 }
 
 /// A light's `KHR_lights_punctual` entry, node position and direction.

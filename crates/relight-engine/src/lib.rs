@@ -28,8 +28,9 @@ pub use ktx2_file::{f16_of, rgb9e5_gpu, rgb9e5_gpu_decode, Ktx2Error, Ktx2Textur
 pub use lightmap::{receiver_irradiance, LightmapLayout};
 pub use techniques::{open_technique, OpenError};
 pub use units::{
-    colour_and_scale, directional_light_lux, ev100_matching_relight, irradiance_of_texel,
-    lightmap_texel, look_rotation, point_light_lumens, LUMENS_PER_WATT,
+    colour_and_scale, directional_light_from_lux, directional_light_lux, ev100_matching_relight,
+    irradiance_of_texel, lightmap_texel, look_rotation, point_light_from_lumens,
+    point_light_lumens, roughness_of, LUMENS_PER_WATT,
 };
 pub use volume::{fill_volume, VolumeGrid};
 

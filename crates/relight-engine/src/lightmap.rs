@@ -36,26 +36,34 @@ impl LightmapLayout {
         self.receiver_of_texel.len()
     }
 
-    /// Fills `texels` (RGBA16F, `width * height * 4` halves, row 0 first:
-    /// glTF's and Bevy's V = 0) with `per_receiver` irradiance (W/m^2)
-    /// converted by [`lightmap_texel`]; alpha is 1. The same result as the
-    /// atlas's scatter and dilation, in parallel rows.
-    pub fn fill_rgba16f(&self, per_receiver: &[Rgb], texels: &mut [f16]) {
-        assert_eq!(texels.len(), self.texel_count() * 4);
+    /// Fills `bytes` (RGBA16F little-endian, 8 bytes a texel, `width *
+    /// height` texels, row 0 first: glTF's and Bevy's V = 0) with
+    /// `per_receiver` irradiance (W/m^2), plus `added` per receiver when
+    /// given (static light an engine cannot draw), converted by
+    /// [`lightmap_texel`]; alpha is 1. The same texels as the atlas's
+    /// scatter and dilation, in one parallel pass over rows: these are
+    /// the bytes an engine uploads every frame.
+    pub fn fill_rgba16f(&self, per_receiver: &[Rgb], added: Option<&[Rgb]>, bytes: &mut [u8]) {
+        assert_eq!(bytes.len(), self.texel_count() * 8);
         let width = self.width as usize;
-        texels
-            .par_chunks_mut(width * 4 * ROWS_PER_TASK)
+        let one = f16::ONE.to_le_bytes();
+        bytes
+            .par_chunks_mut(width * 8 * ROWS_PER_TASK)
             .zip(self.receiver_of_texel.par_chunks(width * ROWS_PER_TASK))
             .for_each(|(out, receivers)| {
-                for (texel, &receiver) in out.chunks_exact_mut(4).zip(receivers) {
-                    let value = match per_receiver.get(receiver as usize) {
-                        Some(&irradiance) => lightmap_texel(irradiance),
+                for (texel, &receiver) in out.chunks_exact_mut(8).zip(receivers) {
+                    let index = receiver as usize;
+                    let value = match per_receiver.get(index) {
+                        Some(&irradiance) => {
+                            let extra = added.map_or(Rgb::ZERO, |added| added[index]);
+                            lightmap_texel(irradiance + extra)
+                        }
                         None => Rgb::ZERO,
                     };
-                    texel[0] = crate::f16_of(value.x);
-                    texel[1] = crate::f16_of(value.y);
-                    texel[2] = crate::f16_of(value.z);
-                    texel[3] = f16::ONE;
+                    texel[0..2].copy_from_slice(&crate::f16_of(value.x).to_le_bytes());
+                    texel[2..4].copy_from_slice(&crate::f16_of(value.y).to_le_bytes());
+                    texel[4..6].copy_from_slice(&crate::f16_of(value.z).to_le_bytes());
+                    texel[6..8].copy_from_slice(&one);
                 }
             });
     }
@@ -110,8 +118,12 @@ mod tests {
             .collect();
         let expected = atlas.to_lightmap(&per_receiver);
         let layout = LightmapLayout::new(&atlas);
-        let mut texels = vec![f16::ZERO; layout.texel_count() * 4];
-        layout.fill_rgba16f(&per_receiver, &mut texels);
+        let mut bytes = vec![0u8; layout.texel_count() * 8];
+        layout.fill_rgba16f(&per_receiver, None, &mut bytes);
+        let texels: Vec<f16> = bytes
+            .chunks_exact(2)
+            .map(|pair| f16::from_le_bytes([pair[0], pair[1]]))
+            .collect();
         let mut covered = 0;
         for (index, irradiance) in expected.iter().enumerate() {
             let want = lightmap_texel(*irradiance);

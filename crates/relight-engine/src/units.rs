@@ -49,6 +49,29 @@ pub fn directional_light_lux(irradiance: Rgb) -> (Rgb, f32) {
     (colour, scale * LUMENS_PER_WATT)
 }
 
+/// A point or spot light's radiant intensity (W/sr) from an engine's
+/// linear colour and lumens: the inverse of [`point_light_lumens`].
+pub fn point_light_from_lumens(colour: Rgb, lumens: f32) -> Rgb {
+    colour * (lumens / (4.0 * PI * LUMENS_PER_WATT))
+}
+
+/// A directional light's irradiance (W/m^2) from an engine's linear
+/// colour and lux: the inverse of [`directional_light_lux`].
+pub fn directional_light_from_lux(colour: Rgb, lux: f32) -> Rgb {
+    colour * (lux / LUMENS_PER_WATT)
+}
+
+/// The metallic-roughness roughness that relight's glTF loader turns back
+/// into Phong `exponent` (exponent = 2 / roughness^4 - 2); Lambertian
+/// materials (exponent at most 1) are fully rough.
+pub fn roughness_of(exponent: f32) -> f32 {
+    if exponent > 1.0 {
+        (2.0 / (exponent + 2.0)).powf(0.25)
+    } else {
+        1.0
+    }
+}
+
 /// The camera exposure (Bevy's `Exposure::ev100`) at which the engine's
 /// linear output equals relight's linear render: exposure =
 /// 1 / (1.2 x 2^ev100) = 1 / [`LUMENS_PER_WATT`].
@@ -95,6 +118,16 @@ mod tests {
         assert_eq!(colour, Rgb::new(1.0, 0.5, 0.25));
         assert!((lumens - 8.0 * PI * LUMENS_PER_WATT).abs() < 1e-4);
         assert_eq!(directional_light_lux(Rgb::ZERO), (Rgb::ONE, 0.0));
+        let back = point_light_from_lumens(colour, lumens);
+        assert!((back - Rgb::new(2.0, 1.0, 0.5)).abs().max_element() < 1e-5);
+        let (colour, lux) = directional_light_lux(Rgb::new(3.0, 6.0, 0.0));
+        assert!(
+            (directional_light_from_lux(colour, lux) - Rgb::new(3.0, 6.0, 0.0)).length() < 1e-5
+        );
+        for exponent in [2.0f32, 40.0, 1000.0] {
+            let roughness = roughness_of(exponent);
+            assert!((2.0 / roughness.powi(4) - 2.0 - exponent).abs() < 1e-3 * exponent);
+        }
     }
 
     #[test]

@@ -27,6 +27,7 @@ fn lit_box() -> (Arc<SceneContext>, Box<dyn Technique>) {
         .update(&Frame {
             lights: &context.scene.lights,
             index: 0,
+            camera: None,
         })
         .unwrap();
     (context, technique)

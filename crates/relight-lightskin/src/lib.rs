@@ -124,8 +124,10 @@
 //!   tiles; from the lightmap 23.5 % and 14.6 %; Sponza 32.9 / 12.2 %
 //!   against 24.7 / 10.6 %), and it lost to the lightmap on every scene
 //!   measured. The lightmap is also what an engine uploads.
-//! - Glossy reflection is evaluated for the scene camera's eye, which relight
-//!   keeps fixed; the glossy lobe uses c = specular / (2 pi), so c_k =
+//! - Glossy reflection is evaluated for the eye of the frame's camera
+//!   (`Frame::camera`; the scene camera's when none is given), so it
+//!   follows a moving viewer from the next update; the glossy lobe uses
+//!   c = specular / (2 pi), so c_k =
 //!   specular (k + 1) / (2 pi) is the normalised Phong lobe.
 
 pub mod dynamic;
@@ -1063,6 +1065,9 @@ impl Technique for LightSkin {
         timings.clear();
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
+        if let Some(camera) = frame.camera {
+            self.eye = camera.eye;
+        }
         if !self.dynamic_meshes.is_empty() {
             let world = timings.time("dynamic meshes", || {
                 DynamicWorld::place(&self.dynamic_meshes, frame.index)

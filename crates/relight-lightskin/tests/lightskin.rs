@@ -50,6 +50,7 @@ fn updated(context: &Arc<SceneContext>, params: LightSkinParams) -> LightSkin {
         .update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })
         .unwrap();
     technique
@@ -602,6 +603,7 @@ fn moving_box_changes_the_indirect_light_on_the_floor() {
             .update(&Frame {
                 lights: &lights,
                 index,
+                camera: None,
             })
             .unwrap();
         let irradiance = technique.receiver_irradiance().unwrap();
@@ -737,6 +739,7 @@ fn a_point_cloud_lights_the_scene() {
         .update(&Frame {
             lights: &[],
             index: 0,
+            camera: None,
         })
         .unwrap();
     let total: f32 = technique
@@ -774,6 +777,7 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
         .update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })
         .unwrap();
     let errors = indirect_errors(&context, &lights, technique.as_ref(), settings, 1024, 4096);
@@ -897,4 +901,67 @@ fn unlit_room_gets_the_light_that_crosses_the_doorway() {
         measured.light_ratio
     );
     assert!(measured.image_tiles < 0.05, "{}", measured.image_tiles);
+}
+
+/// Glossy light is gathered for the frame's camera: the same point and
+/// view direction read other glossy light once the camera has moved, and
+/// a frame without a camera uses the scene's.
+#[test]
+fn glossy_light_follows_the_frames_camera() {
+    let mut scene = closed_cube(
+        0.6,
+        Light::Point {
+            position: Vec3::new(0.5, 0.6, -0.4),
+            intensity: Rgb::splat(5.0),
+        },
+    );
+    scene.materials[0].phong_exponent = 40.0;
+    scene.camera.eye = Vec3::new(-0.6, 0.2, 0.7);
+    scene.camera.target = Vec3::new(0.0, -1.0, 0.0);
+    let context = context_of(scene, TexelDensity::TargetResolution(32));
+    let params = LightSkinParams {
+        specular: 0.5,
+        ..LightSkinParams::default()
+    };
+    let floor = relight_technique::SurfacePoint {
+        position: Vec3::new(0.1, -1.0, 0.1),
+        normal: Vec3::Y,
+        triangle: (0..context.scene.mesh.triangles.len() as u32)
+            .find(|&t| context.scene.mesh.geometric_normal(t as usize).y > 0.9)
+            .unwrap(),
+        barycentric: glam::Vec2::new(0.3, 0.3),
+    };
+    let floor = relight_technique::SurfacePoint {
+        position: context
+            .scene
+            .mesh
+            .point_at(floor.triangle as usize, floor.barycentric),
+        ..floor
+    };
+    let toward_viewer = (context.scene.camera.eye - floor.position).normalize();
+    let glossy_seen_from = |camera: Option<&relight_scene::Camera>| {
+        let mut technique = LightSkin::new(context.clone(), params.clone()).unwrap();
+        let lights = context.scene.lights.clone();
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index: 0,
+                camera,
+            })
+            .unwrap();
+        technique
+            .glossy_radiance(&floor, toward_viewer, 40.0)
+            .expect("a glossy floor has glossy light")
+    };
+    let scene_camera = glossy_seen_from(None);
+    let same = glossy_seen_from(Some(&context.scene.camera));
+    let mut moved = context.scene.camera.clone();
+    moved.eye = Vec3::new(0.7, 0.3, -0.6);
+    let elsewhere = glossy_seen_from(Some(&moved));
+    assert_eq!(scene_camera, same);
+    assert!(scene_camera.max_element() > 0.0);
+    assert!(
+        (elsewhere - scene_camera).abs().max_element() > 0.01 * scene_camera.max_element(),
+        "{elsewhere} against {scene_camera}"
+    );
 }

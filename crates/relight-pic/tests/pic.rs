@@ -73,6 +73,7 @@ fn load_and_update(
         .update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })
         .expect("update");
     technique

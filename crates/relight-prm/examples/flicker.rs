@@ -123,6 +123,7 @@ fn main() {
                 prm.update(&Frame {
                     lights: frame_lights,
                     index: index as u64,
+                    camera: None,
                 })
                 .expect("update");
                 let values = prm.receiver_irradiance().expect("lightmap").to_vec();

@@ -34,6 +34,7 @@ fn baked_and_updated(context: &Arc<SceneContext>) -> Box<dyn relight_technique::
     prm.update(&Frame {
         lights: &context.scene.lights,
         index: 0,
+        camera: None,
     })
     .unwrap();
     prm
@@ -89,6 +90,7 @@ fn lightmap_errors(
             prm.update(&Frame {
                 lights: &lights,
                 index: 0,
+                camera: None,
             })
             .unwrap();
             error_norms(prm.receiver_irradiance().unwrap(), &reference.mean).relative_rmse
@@ -537,6 +539,7 @@ fn closed_boxes_within_fifteen_percent_over_tiles() {
             prm.update(&Frame {
                 lights: &context.scene.lights,
                 index: 0,
+                camera: None,
             })
             .unwrap();
             relight_render::convergence::measure_against_path_tracer(

@@ -175,6 +175,7 @@ pub fn run_study(
             .update(&Frame {
                 lights: &lights,
                 index: 0,
+                camera: None,
             })
             .expect("update");
         let values = technique

@@ -37,6 +37,7 @@ fn path_traced_lightmap_matches_per_pixel_path_tracing() {
         .update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })
         .unwrap();
     let lightmapped =

@@ -59,6 +59,7 @@ fn main() {
             let frame = Frame {
                 lights: &lights,
                 index: index as u64,
+                camera: None,
             };
             full.update(&frame).expect("update");
             staggered.update(&frame).expect("update");

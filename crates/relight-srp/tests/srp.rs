@@ -62,6 +62,7 @@ fn srp(context: &Arc<SceneContext>, params: &[(&str, &str)]) -> Box<dyn Techniqu
         .update(&Frame {
             lights: &lights,
             index: 0,
+            camera: None,
         })
         .expect("update");
     technique

@@ -20,11 +20,14 @@ pub struct SurfacePoint {
     pub barycentric: Vec2,
 }
 
-/// The lights of one frame.
+/// The lights of one frame, and the viewer.
 #[derive(Clone, Copy, Debug)]
 pub struct Frame<'a> {
     pub lights: &'a [Light],
     pub index: u64,
+    /// The camera this frame is seen from, for view-dependent (glossy)
+    /// indirect light; `None`: the scene file's camera.
+    pub camera: Option<&'a relight_scene::Camera>,
 }
 
 /// Wall-clock time of each stage of the last update, in pipeline order.

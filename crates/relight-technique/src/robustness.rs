@@ -37,6 +37,7 @@ pub fn check_damaged_payloads(
                     .update(&Frame {
                         lights: &lights,
                         index: 0,
+                        camera: None,
                     })
                     .is_ok(),
                 Err(_) => false,

@@ -1,0 +1,47 @@
+//! relight in Bevy: a plugin that keeps Bevy's lightmaps and irradiance
+//! volumes lit by a relight technique while the app moves its lights.
+//!
+//! ```no_run
+//! use bevy::prelude::*;
+//! use relight_bevy::{RelightPlugin, RelightScene};
+//!
+//! fn main() {
+//!     App::new()
+//!         .add_plugins((DefaultPlugins, RelightPlugin))
+//!         // relight's lightmap replaces ambient light on the scene.
+//!         .insert_resource(GlobalAmbientLight::NONE)
+//!         .add_systems(Startup, |mut commands: Commands| {
+//!             commands.spawn(RelightScene::new("scenes/cornell-box/scene.toml").technique("lightskin"));
+//!             commands.spawn((Camera3d::default(), relight_bevy::matching_exposure()));
+//!         })
+//!         .run();
+//! }
+//! ```
+//!
+//! Data flow: spawning a [`RelightScene`] starts a loading thread (scene
+//! file, BVH and atlas, then the bake file or a bake in memory; progress
+//! in [`RelightStatus::Loading`]). When it is done the plugin spawns the
+//! static meshes as children (relight's atlas as `ATTRIBUTE_UV_1`, a
+//! `Lightmap` on each), the scene's lights as Bevy lights with shadow
+//! maps and [`RelightLight`] (Bevy draws direct light), and an
+//! `IrradianceVolume` over the scene for dynamic objects. A worker thread
+//! then owns the technique: each frame the main thread reads the Bevy
+//! lights' transforms, colours and intensities and, when the worker is
+//! free, hands them over; the worker updates the technique and fills the
+//! lightmap's RGBA16F bytes (and, every `volume_every` updates, the
+//! volume's), which the main thread moves into the images: a frame never
+//! waits for GI, and [`RelightStats::gi_age_frames`] says how old the
+//! light on screen is.
+//!
+//! Units: texels are E/pi in cd/m^2 at [`relight_engine::LUMENS_PER_WATT`];
+//! Bevy lights are read back through the same factor. Static emitters
+//! (emissive triangles, the environment) are not Bevy lights, so their
+//! direct light goes into the lightmap with the indirect light (unless
+//! [`RelightScene::indirect_only`]).
+
+mod convert;
+mod runtime;
+pub mod snapshot;
+
+pub use convert::{bevy_light_to_relight, matching_exposure};
+pub use runtime::{RelightLight, RelightPlugin, RelightScene, RelightStats, RelightStatus};

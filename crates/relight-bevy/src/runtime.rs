@@ -1,0 +1,534 @@
+//! The plugin's systems: loading off the main thread, spawning the scene,
+//! and the per-frame exchange with the worker that owns the technique.
+
+use crate::convert;
+use bevy::diagnostic::FrameCount;
+use bevy::light::{IrradianceVolume, LightProbe};
+use bevy::pbr::Lightmap;
+use bevy::prelude::*;
+use relight_core::Rgb;
+use relight_engine::{fill_volume, LightmapLayout, VolumeGrid};
+use relight_scene::Light;
+use relight_technique::{ContextSettings, Frame, Progress, SceneContext, Technique};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{channel, Receiver, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// Adds the systems that load, spawn and keep [`RelightScene`]s lit.
+pub struct RelightPlugin;
+
+impl Plugin for RelightPlugin {
+    fn build(&self, app: &mut App) {
+        app.add_systems(
+            Update,
+            (start_loading, finish_loading, exchange_with_worker).chain(),
+        );
+    }
+}
+
+/// A relight scene in a Bevy app: which file, technique and bake.
+#[derive(Component, Clone, Debug)]
+pub struct RelightScene {
+    /// A scene file (TOML) or a mesh file (OBJ, glTF, GLB).
+    pub path: PathBuf,
+    pub technique: String,
+    /// Technique parameters, as `relight --set key=value` takes them.
+    pub params: Vec<(String, String)>,
+    /// A bake file from `relight bake`; without one, techniques that need a
+    /// bake bake in memory while [`RelightStatus::Loading`].
+    pub bake: Option<PathBuf>,
+    /// Irradiance-volume voxels along the scene's longest side; 0: none.
+    pub volume_cells: u32,
+    /// Refresh the volume every this many GI updates (a refresh costs
+    /// about 100 ms on Sponza's 16 x 8 x 7 voxels, on the worker).
+    pub volume_every: u32,
+    /// Spawn the scene's lights as Bevy lights (with [`RelightLight`]).
+    pub spawn_lights: bool,
+    /// The lightmap holds indirect light only, without the static
+    /// emitters' direct light (for comparisons with relight's
+    /// indirect-only renders).
+    pub indirect_only: bool,
+}
+
+impl RelightScene {
+    pub fn new(path: impl Into<PathBuf>) -> Self {
+        Self {
+            path: path.into(),
+            technique: "lightskin".into(),
+            params: Vec::new(),
+            bake: None,
+            volume_cells: 16,
+            volume_every: 10,
+            spawn_lights: true,
+            indirect_only: false,
+        }
+    }
+
+    pub fn technique(mut self, name: impl Into<String>) -> Self {
+        self.technique = name.into();
+        self
+    }
+
+    pub fn set(mut self, key: impl Into<String>, value: impl Into<String>) -> Self {
+        self.params.push((key.into(), value.into()));
+        self
+    }
+
+    pub fn bake(mut self, path: impl Into<PathBuf>) -> Self {
+        self.bake = Some(path.into());
+        self
+    }
+}
+
+/// Where a [`RelightScene`] is: loading (with the stage and its fraction
+/// done), running, or failed with relight's message.
+#[derive(Component, Clone, Debug, PartialEq)]
+pub enum RelightStatus {
+    Loading { stage: String, fraction: f32 },
+    Running,
+    Failed(String),
+}
+
+/// Marks a Bevy light that relight reads each frame; the number orders
+/// the lights as the technique sees them.
+#[derive(Component, Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RelightLight(pub usize);
+
+/// What the last GI update cost and how old the light on screen is.
+#[derive(Component, Clone, Debug, Default)]
+pub struct RelightStats {
+    /// Frames between reading the lights and showing the light computed
+    /// from them.
+    pub gi_age_frames: u64,
+    /// GI updates shown so far.
+    pub updates: u64,
+    /// The technique's stages, then the lightmap bytes and (when it was
+    /// refreshed) the volume, in milliseconds, on the worker.
+    pub stages: Vec<(String, f64)>,
+    /// The technique's run-time buffers.
+    pub memory_bytes: usize,
+    /// Main-thread time of the last frame's exchange (light sync, moving
+    /// the finished bytes into the images), in milliseconds.
+    pub bridge_ms: f64,
+    /// The scene as loaded, for apps that need its camera or bounds.
+    pub camera: Option<relight_scene::Camera>,
+}
+
+/// Progress of the loading thread, shared with the main thread.
+#[derive(Default)]
+struct SharedProgress {
+    stage: Mutex<String>,
+    total: AtomicU64,
+    done: AtomicU64,
+}
+
+impl Progress for SharedProgress {
+    fn start(&self, stage: &str, total: u64) {
+        *self.stage.lock().unwrap() = stage.to_string();
+        self.total.store(total.max(1), Ordering::Relaxed);
+        self.done.store(0, Ordering::Relaxed);
+    }
+    fn advance(&self, amount: u64) {
+        self.done.fetch_add(amount, Ordering::Relaxed);
+    }
+    fn finish(&self) {
+        self.done
+            .store(self.total.load(Ordering::Relaxed), Ordering::Relaxed);
+    }
+}
+
+struct Loaded {
+    context: Arc<SceneContext>,
+    technique: Box<dyn Technique>,
+}
+
+#[derive(Component)]
+struct Loading {
+    progress: Arc<SharedProgress>,
+    result: Mutex<Receiver<Result<Loaded, String>>>,
+}
+
+fn start_loading(
+    mut commands: Commands,
+    added: Query<(Entity, &RelightScene), Added<RelightScene>>,
+) {
+    for (entity, scene) in &added {
+        let progress = Arc::new(SharedProgress::default());
+        let (send, receive) = channel();
+        let (settings, shared) = (scene.clone(), progress.clone());
+        std::thread::spawn(move || {
+            let _ = send.send(load(&settings, shared.as_ref()));
+        });
+        commands.entity(entity).insert((
+            Loading {
+                progress,
+                result: Mutex::new(receive),
+            },
+            RelightStatus::Loading {
+                stage: "loading".into(),
+                fraction: 0.0,
+            },
+            RelightStats::default(),
+            Transform::default(),
+            Visibility::default(),
+        ));
+    }
+}
+
+fn load(settings: &RelightScene, progress: &SharedProgress) -> Result<Loaded, String> {
+    progress.start(&format!("loading {}", settings.path.display()), 1);
+    let scene = relight_scene::load_scene(&settings.path).map_err(|error| error.to_string())?;
+    let context = Arc::new(
+        SceneContext::new(scene, ContextSettings::default()).map_err(|error| error.to_string())?,
+    );
+    let technique = relight_engine::open_technique(
+        &context,
+        &settings.technique,
+        &settings.params,
+        settings.bake.as_deref(),
+        progress,
+    )
+    .map_err(|error| error.to_string())?;
+    Ok(Loaded { context, technique })
+}
+
+/// A frame's lights for the worker, with the buffers it fills (recycled
+/// when the render world hands none back, they are allocated anew).
+struct Job {
+    lights: Vec<Light>,
+    /// The technique's frame number: updates so far.
+    index: u64,
+    /// Bevy's frame when the lights were read.
+    frame: u64,
+    refresh_volume: bool,
+}
+
+struct Done {
+    frame: u64,
+    lightmap: Vec<u8>,
+    volume: Option<Vec<u8>>,
+    stages: Vec<(String, f64)>,
+    memory_bytes: usize,
+}
+
+#[derive(Component)]
+struct Worker {
+    jobs: Sender<Job>,
+    done: Mutex<Receiver<Result<Done, String>>>,
+    in_flight: Option<u64>,
+    updates_sent: u64,
+    volume_every: u32,
+    lightmap: Handle<Image>,
+    volume: Option<Handle<Image>>,
+}
+
+#[allow(clippy::too_many_arguments)]
+fn finish_loading(
+    mut commands: Commands,
+    mut loading: Query<(
+        Entity,
+        &RelightScene,
+        &Loading,
+        &mut RelightStatus,
+        &mut RelightStats,
+    )>,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut images: ResMut<Assets<Image>>,
+) {
+    for (entity, settings, state, mut status, mut stats) in &mut loading {
+        let message = state.result.lock().unwrap().try_recv();
+        let loaded = match message {
+            Err(TryRecvError::Empty) => {
+                let total = state.progress.total.load(Ordering::Relaxed).max(1);
+                let done = state.progress.done.load(Ordering::Relaxed);
+                *status = RelightStatus::Loading {
+                    stage: state.progress.stage.lock().unwrap().clone(),
+                    fraction: (done as f32 / total as f32).min(1.0),
+                };
+                continue;
+            }
+            Err(TryRecvError::Disconnected) => Err("the loading thread stopped".to_string()),
+            Ok(result) => result,
+        };
+        commands.entity(entity).remove::<Loading>();
+        let Loaded { context, technique } = match loaded {
+            Ok(loaded) => loaded,
+            Err(message) => {
+                fail(&mut status, message);
+                continue;
+            }
+        };
+        let scene = &context.scene;
+        let atlas = &context.atlas;
+        let layout = LightmapLayout::new(atlas);
+        let lightmap = images.add(convert::float_image(
+            atlas.width,
+            atlas.height,
+            1,
+            vec![0; layout.texel_count() * 8],
+        ));
+        let textures: Vec<Handle<Image>> = scene
+            .textures
+            .iter()
+            .map(|texture| images.add(convert::albedo_image(texture)))
+            .collect();
+        let material_handles: Vec<Handle<StandardMaterial>> = scene
+            .materials
+            .iter()
+            .map(|material| {
+                let texture = material
+                    .albedo_texture
+                    .and_then(|index| textures.get(index as usize).cloned());
+                let mut material = convert::material(material, texture);
+                if settings.indirect_only {
+                    // Emitters show as light seen directly, not bounced.
+                    material.emissive = LinearRgba::BLACK;
+                }
+                materials.add(material)
+            })
+            .collect();
+        let (lo, hi) = scene.mesh.bounds();
+        let range = (hi - lo).length() * 4.0;
+        commands.entity(entity).with_children(|children| {
+            for (material, mesh) in convert::static_meshes(scene, atlas) {
+                children.spawn((
+                    Mesh3d(meshes.add(mesh)),
+                    MeshMaterial3d(material_handles[material as usize].clone()),
+                    Lightmap {
+                        image: lightmap.clone(),
+                        ..default()
+                    },
+                ));
+            }
+            if settings.spawn_lights {
+                for (index, light) in scene.lights.iter().enumerate() {
+                    let mut light_entity = children.spawn(RelightLight(index));
+                    convert::bevy_light(light, range, &mut light_entity);
+                }
+            }
+        });
+        let grid = (settings.volume_cells > 0)
+            .then(|| VolumeGrid::covering(lo, hi, settings.volume_cells));
+        let volume = grid.map(|grid| {
+            let size = grid.texture_size();
+            let handle = images.add(convert::float_image(
+                size.x,
+                size.y,
+                size.z,
+                vec![0; grid.voxel_count() * 6 * 8],
+            ));
+            let (centre, scale) = grid.centre_and_scale();
+            commands.spawn((
+                IrradianceVolume {
+                    voxels: handle.clone(),
+                    intensity: 1.0,
+                    // The lightmap is these meshes' indirect light.
+                    affects_lightmapped_meshes: false,
+                },
+                LightProbe::default(),
+                Transform::from_translation(convert::vec3(centre)).with_scale(convert::vec3(scale)),
+                ChildOf(entity),
+            ));
+            handle
+        });
+        let static_direct = (!settings.indirect_only).then(|| static_direct_light(&context));
+        stats.camera = Some(scene.camera.clone());
+        let (jobs, job_receiver) = channel();
+        let (done_sender, done) = channel();
+        let context = context.clone();
+        std::thread::spawn(move || {
+            work(
+                context,
+                technique,
+                layout,
+                grid,
+                static_direct,
+                job_receiver,
+                done_sender,
+            )
+        });
+        commands.entity(entity).insert(Worker {
+            jobs,
+            done: Mutex::new(done),
+            in_flight: None,
+            updates_sent: 0,
+            volume_every: settings.volume_every.max(1),
+            lightmap,
+            volume,
+        });
+        *status = RelightStatus::Running;
+    }
+}
+
+/// Direct light from what Bevy cannot draw as lights: emissive
+/// triangles and the environment, static, so computed once.
+fn static_direct_light(context: &SceneContext) -> Vec<Rgb> {
+    let receivers = &context.atlas.receivers;
+    let mut light = vec![Rgb::ZERO; receivers.len()];
+    context
+        .direct()
+        .irradiance_batch(&[], &receivers.positions, &receivers.normals, &mut light);
+    light
+}
+
+/// The worker: owns the technique, turns each job's lights into lightmap
+/// (and volume) bytes. Ends when the main side drops its sender.
+fn work(
+    context: Arc<SceneContext>,
+    mut technique: Box<dyn Technique>,
+    layout: LightmapLayout,
+    grid: Option<VolumeGrid>,
+    static_direct: Option<Vec<Rgb>>,
+    jobs: Receiver<Job>,
+    done: Sender<Result<Done, String>>,
+) {
+    let mut volume_values = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
+    while let Ok(job) = jobs.recv() {
+        let result = technique
+            .update(&Frame {
+                lights: &job.lights,
+                index: job.index,
+                camera: None,
+            })
+            .map_err(|error| error.to_string())
+            .map(|()| {
+                let mut stages: Vec<(String, f64)> = technique
+                    .timings()
+                    .stages
+                    .iter()
+                    .map(|(name, duration)| (name.to_string(), duration.as_secs_f64() * 1e3))
+                    .collect();
+                let start = Instant::now();
+                let computed;
+                let values = match technique.receiver_irradiance() {
+                    Some(values) => values,
+                    None => {
+                        computed =
+                            relight_engine::receiver_irradiance(&context, technique.as_ref());
+                        &computed
+                    }
+                };
+                let mut lightmap = vec![0u8; layout.texel_count() * 8];
+                layout.fill_rgba16f(values, static_direct.as_deref(), &mut lightmap);
+                stages.push((
+                    "lightmap RGBA16F".into(),
+                    start.elapsed().as_secs_f64() * 1e3,
+                ));
+                let volume = match (&grid, job.refresh_volume) {
+                    (Some(grid), true) => {
+                        let start = Instant::now();
+                        fill_volume(grid, technique.as_ref(), &mut volume_values);
+                        let mut bytes = Vec::with_capacity(volume_values.len() * 8);
+                        relight_engine::TexelFormat::Rgba16Float
+                            .encode_into(&volume_values, &mut bytes);
+                        stages.push((
+                            "irradiance volume".into(),
+                            start.elapsed().as_secs_f64() * 1e3,
+                        ));
+                        Some(bytes)
+                    }
+                    _ => None,
+                };
+                Done {
+                    frame: job.frame,
+                    lightmap,
+                    volume,
+                    stages,
+                    memory_bytes: technique.memory().iter().map(|entry| entry.bytes).sum(),
+                }
+            });
+        if done.send(result).is_err() {
+            return;
+        }
+    }
+}
+
+type BevyLights<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static RelightLight,
+        &'static GlobalTransform,
+        Option<&'static PointLight>,
+        Option<&'static SpotLight>,
+        Option<&'static DirectionalLight>,
+    ),
+>;
+
+fn fail(status: &mut RelightStatus, message: String) {
+    error!("relight: {message}");
+    *status = RelightStatus::Failed(message);
+}
+
+/// Each frame: take a finished update (moving its bytes into the images),
+/// then hand the worker this frame's lights if it is free.
+fn exchange_with_worker(
+    mut scenes: Query<(&mut Worker, &mut RelightStats, &mut RelightStatus)>,
+    lights: BevyLights,
+    mut images: ResMut<Assets<Image>>,
+    frame_count: Res<FrameCount>,
+) {
+    for (mut worker, mut stats, mut status) in &mut scenes {
+        let start = Instant::now();
+        let finished = worker.done.lock().unwrap().try_recv();
+        match finished {
+            Ok(Ok(done)) => {
+                if let Some(mut image) = images.get_mut(&worker.lightmap) {
+                    image.data = Some(done.lightmap);
+                }
+                if let (Some(bytes), Some(handle)) = (done.volume, worker.volume.clone()) {
+                    if let Some(mut image) = images.get_mut(&handle) {
+                        image.data = Some(bytes);
+                    }
+                }
+                stats.updates += 1;
+                stats.stages = done.stages;
+                stats.memory_bytes = done.memory_bytes;
+                worker.in_flight = None;
+                stats.gi_age_frames = u64::from(frame_count.0).saturating_sub(done.frame);
+            }
+            Ok(Err(message)) => {
+                fail(&mut status, message);
+                worker.in_flight = None;
+                continue;
+            }
+            Err(TryRecvError::Disconnected) => {
+                fail(&mut status, "the relight worker stopped".into());
+                worker.in_flight = None;
+                continue;
+            }
+            Err(TryRecvError::Empty) => {
+                if let Some(sent) = worker.in_flight {
+                    stats.gi_age_frames = u64::from(frame_count.0).saturating_sub(sent);
+                }
+            }
+        }
+        if worker.in_flight.is_none() && *status == RelightStatus::Running {
+            let mut current: Vec<(usize, Light)> = lights
+                .iter()
+                .filter_map(|(marker, transform, point, spot, directional)| {
+                    crate::convert::bevy_light_to_relight(transform, point, spot, directional)
+                        .map(|light| (marker.0, light))
+                })
+                .collect();
+            current.sort_by_key(|(index, _)| *index);
+            let refresh_volume = worker.volume.is_some()
+                && worker.updates_sent % u64::from(worker.volume_every) == 0;
+            let frame = u64::from(frame_count.0);
+            let job = Job {
+                lights: current.into_iter().map(|(_, light)| light).collect(),
+                index: worker.updates_sent,
+                frame,
+                refresh_volume,
+            };
+            if worker.jobs.send(job).is_ok() {
+                worker.in_flight = Some(frame);
+                worker.updates_sent += 1;
+            }
+        }
+        stats.bridge_ms = start.elapsed().as_secs_f64() * 1e3;
+    }
+}

@@ -1,0 +1,207 @@
+//! A headless render of a relight scene through Bevy: the bridge's test.
+//!
+//! No window: Bevy renders the scene camera into an RGBA16F image (HDR, no
+//! tone mapping, the exposure at which Bevy's output equals relight's
+//! radiance), driven frame by frame on this thread, and reads it back with
+//! Bevy's screenshot. On a machine without a GPU it runs on Mesa's software
+//! Vulkan (lavapipe).
+
+use crate::runtime::{RelightLight, RelightScene, RelightStats, RelightStatus};
+use crate::{convert, RelightPlugin};
+use bevy::camera::RenderTarget;
+use bevy::core_pipeline::tonemapping::Tonemapping;
+use bevy::prelude::*;
+use bevy::render::render_resource::{PollType, TextureFormat, TextureUsages};
+use bevy::render::renderer::RenderDevice;
+use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
+use bevy::render::RenderPlugin;
+use bevy::window::ExitCondition;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// What to render.
+#[derive(Clone, Debug)]
+pub struct SnapshotSettings {
+    pub scene: RelightScene,
+    /// GI updates shown before the picture is taken (techniques that feed
+    /// last frame's light back need several to reach all bounces).
+    pub gi_updates: u64,
+    /// Image size; `None`: the scene camera's resolution.
+    pub size: Option<[u32; 2]>,
+    /// Loading and rendering together may take at most this long.
+    pub timeout: Duration,
+}
+
+/// Linear RGB pixels, rows from the top.
+#[derive(Clone, Debug)]
+pub struct Snapshot {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<[f32; 3]>,
+    /// The last GI update's stages on the worker (ms).
+    pub stages: Vec<(String, f64)>,
+}
+
+#[derive(Resource, Default, Clone)]
+struct Captured(Arc<Mutex<Option<Image>>>);
+
+/// Renders `settings.scene` through Bevy with relight's GI. With
+/// `indirect_only` the scene's Bevy lights are hidden (Bevy draws no
+/// direct light; relight still reads them) and the lightmap holds indirect
+/// light only.
+pub fn render_snapshot(settings: &SnapshotSettings) -> Result<Snapshot, String> {
+    let mut app = App::new();
+    app.add_plugins(
+        DefaultPlugins
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
+            .set(RenderPlugin {
+                // Every pipeline ready in the frame that first needs it.
+                synchronous_pipeline_compilation: true,
+                ..default()
+            })
+            .disable::<bevy::winit::WinitPlugin>()
+            .disable::<bevy::render::pipelined_rendering::PipelinedRenderingPlugin>()
+            .disable::<bevy::log::LogPlugin>(),
+    )
+    .add_plugins(RelightPlugin)
+    .insert_resource(GlobalAmbientLight::NONE)
+    .insert_resource(ClearColor(Color::BLACK))
+    .init_resource::<Captured>();
+    app.finish();
+    app.cleanup();
+    let scene_entity = app.world_mut().spawn(settings.scene.clone()).id();
+    let captured = app.world().resource::<Captured>().clone();
+    let started = Instant::now();
+    let mut camera_spawned = false;
+    let mut screenshot_at: Option<u64> = None;
+    let mut frames_after_screenshot = 0;
+    loop {
+        if started.elapsed() > settings.timeout {
+            return Err(format!(
+                "no snapshot after {} s",
+                settings.timeout.as_secs()
+            ));
+        }
+        app.update();
+        app.world()
+            .resource::<RenderDevice>()
+            .wgpu_device()
+            .poll(PollType::Wait {
+                submission_index: None,
+                timeout: None,
+            })
+            .map_err(|error| format!("the GPU device failed: {error}"))?;
+        if let Some(image) = captured.0.lock().unwrap().take() {
+            let stats = app.world().get::<RelightStats>(scene_entity).cloned();
+            return to_snapshot(image, stats.map(|stats| stats.stages).unwrap_or_default());
+        }
+        let world = app.world_mut();
+        let status = world.get::<RelightStatus>(scene_entity).cloned();
+        match status {
+            Some(RelightStatus::Failed(message)) => return Err(message),
+            Some(RelightStatus::Running) => {}
+            _ => {
+                std::thread::sleep(Duration::from_millis(20));
+                continue;
+            }
+        }
+        if settings.scene.indirect_only {
+            let mut lights = world.query_filtered::<&mut Visibility, With<RelightLight>>();
+            for mut visibility in lights.iter_mut(world) {
+                *visibility = Visibility::Hidden;
+            }
+        }
+        let stats = world
+            .get::<RelightStats>(scene_entity)
+            .cloned()
+            .unwrap_or_default();
+        if !camera_spawned {
+            let camera = stats.camera.clone().unwrap_or_default();
+            let [width, height] = settings.size.unwrap_or(camera.resolution);
+            let mut target =
+                Image::new_target_texture(width, height, TextureFormat::Rgba16Float, None);
+            target.texture_descriptor.usage |= TextureUsages::COPY_SRC;
+            let handle = world.resource_mut::<Assets<Image>>().add(target);
+            let (transform, mut projection) = convert::camera(&camera);
+            if let Projection::Perspective(perspective) = &mut projection {
+                perspective.aspect_ratio = width as f32 / height as f32;
+            }
+            world.spawn((
+                Camera3d::default(),
+                RenderTarget::Image(handle.clone().into()),
+                bevy::camera::Hdr,
+                Tonemapping::None,
+                crate::matching_exposure(),
+                transform,
+                projection,
+                SnapshotTarget(handle),
+            ));
+            camera_spawned = true;
+            continue;
+        }
+        // Two frames after the update arrives: the image upload and a
+        // render with it.
+        if stats.updates >= settings.gi_updates && screenshot_at.is_none() {
+            screenshot_at = Some(stats.updates);
+            frames_after_screenshot = 0;
+        }
+        if screenshot_at.is_some() {
+            frames_after_screenshot += 1;
+            if frames_after_screenshot == 3 {
+                let handle = world
+                    .query::<&SnapshotTarget>()
+                    .iter(world)
+                    .next()
+                    .map(|target| target.0.clone())
+                    .ok_or("the snapshot camera disappeared")?;
+                let slot = captured.0.clone();
+                world.spawn(Screenshot::image(handle)).observe(
+                    move |event: On<ScreenshotCaptured>| {
+                        *slot.lock().unwrap() = Some(event.image.clone());
+                    },
+                );
+            }
+        }
+    }
+}
+
+#[derive(Component)]
+struct SnapshotTarget(Handle<Image>);
+
+fn to_snapshot(image: Image, stages: Vec<(String, f64)>) -> Result<Snapshot, String> {
+    let (width, height) = (image.width(), image.height());
+    let data = image.data.as_ref().ok_or("the screenshot has no pixels")?;
+    let pixels = match image.texture_descriptor.format {
+        TextureFormat::Rgba16Float => data
+            .chunks_exact(8)
+            .map(|texel| {
+                let channel =
+                    |i: usize| half::f16::from_le_bytes([texel[2 * i], texel[2 * i + 1]]).to_f32();
+                [channel(0), channel(1), channel(2)]
+            })
+            .collect(),
+        TextureFormat::Rgba32Float => data
+            .chunks_exact(16)
+            .map(|texel| {
+                let channel =
+                    |i: usize| f32::from_le_bytes(texel[4 * i..4 * i + 4].try_into().unwrap());
+                [channel(0), channel(1), channel(2)]
+            })
+            .collect(),
+        other => {
+            return Err(format!(
+                "the screenshot came back as {other:?}, not a float format"
+            ))
+        }
+    };
+    Ok(Snapshot {
+        width,
+        height,
+        pixels,
+        stages,
+    })
+}
