@@ -334,7 +334,8 @@ fn finish_loading(
             ));
             handle
         });
-        let static_direct = (!settings.indirect_only).then(|| static_direct_light(&context));
+        let static_direct = (!settings.indirect_only && context.direct().has_static_light())
+            .then(|| static_direct_light(&context));
         stats.camera = Some(scene.camera.clone());
         let (jobs, job_receiver) = channel();
         let (done_sender, done) = channel();

@@ -50,29 +50,7 @@ struct Captured(Arc<Mutex<Option<Image>>>);
 /// direct light; relight still reads them) and the lightmap holds indirect
 /// light only.
 pub fn render_snapshot(settings: &SnapshotSettings) -> Result<Snapshot, String> {
-    let mut app = App::new();
-    app.add_plugins(
-        DefaultPlugins
-            .set(WindowPlugin {
-                primary_window: None,
-                exit_condition: ExitCondition::DontExit,
-                ..default()
-            })
-            .set(RenderPlugin {
-                // Every pipeline ready in the frame that first needs it.
-                synchronous_pipeline_compilation: true,
-                ..default()
-            })
-            .disable::<bevy::winit::WinitPlugin>()
-            .disable::<bevy::render::pipelined_rendering::PipelinedRenderingPlugin>()
-            .disable::<bevy::log::LogPlugin>(),
-    )
-    .add_plugins(RelightPlugin)
-    .insert_resource(GlobalAmbientLight::NONE)
-    .insert_resource(ClearColor(Color::BLACK))
-    .init_resource::<Captured>();
-    app.finish();
-    app.cleanup();
+    let mut app = headless_app();
     let scene_entity = app.world_mut().spawn(settings.scene.clone()).id();
     let captured = app.world().resource::<Captured>().clone();
     let started = Instant::now();
@@ -86,15 +64,7 @@ pub fn render_snapshot(settings: &SnapshotSettings) -> Result<Snapshot, String> 
                 settings.timeout.as_secs()
             ));
         }
-        app.update();
-        app.world()
-            .resource::<RenderDevice>()
-            .wgpu_device()
-            .poll(PollType::Wait {
-                submission_index: None,
-                timeout: None,
-            })
-            .map_err(|error| format!("the GPU device failed: {error}"))?;
+        update_and_wait(&mut app)?;
         if let Some(image) = captured.0.lock().unwrap().take() {
             let stats = app.world().get::<RelightStats>(scene_entity).cloned();
             return to_snapshot(image, stats.map(|stats| stats.stages).unwrap_or_default());
@@ -204,4 +174,129 @@ fn to_snapshot(image: Image, stages: Vec<(String, f64)>) -> Result<Snapshot, Str
         pixels,
         stages,
     })
+}
+
+/// A windowless Bevy app with relight's plugin, rendering on this thread
+/// (no pipelined rendering), no ambient light and a black background.
+fn headless_app() -> App {
+    let mut app = App::new();
+    app.add_plugins(
+        DefaultPlugins
+            .set(WindowPlugin {
+                primary_window: None,
+                exit_condition: ExitCondition::DontExit,
+                ..default()
+            })
+            .set(RenderPlugin {
+                // Every pipeline ready in the frame that first needs it.
+                synchronous_pipeline_compilation: true,
+                ..default()
+            })
+            .disable::<bevy::winit::WinitPlugin>()
+            .disable::<bevy::render::pipelined_rendering::PipelinedRenderingPlugin>()
+            .disable::<bevy::log::LogPlugin>(),
+    )
+    .add_plugins(RelightPlugin)
+    .insert_resource(GlobalAmbientLight::NONE)
+    .insert_resource(ClearColor(Color::BLACK))
+    .init_resource::<Captured>();
+    app.finish();
+    app.cleanup();
+    app
+}
+
+/// One frame, main and render world, and the GPU's work finished.
+fn update_and_wait(app: &mut App) -> Result<(), String> {
+    app.update();
+    app.world()
+        .resource::<RenderDevice>()
+        .wgpu_device()
+        .poll(PollType::Wait {
+            submission_index: None,
+            timeout: None,
+        })
+        .map(|_| ())
+        .map_err(|error| format!("the GPU device failed: {error}"))
+}
+
+/// What the plugin cost over a run of frames: the main thread's exchange
+/// every frame, and each GI update's stages on the worker.
+#[derive(Clone, Debug, Default)]
+pub struct BridgeRun {
+    /// Main-thread milliseconds of the exchange, one a frame.
+    pub bridge_ms: Vec<f64>,
+    /// The stages of each GI update shown (ms on the worker).
+    pub updates: Vec<Vec<(String, f64)>>,
+    /// Frames between reading the lights and showing their light, one a
+    /// frame.
+    pub gi_age_frames: Vec<u64>,
+    /// Wall time of each frame's main and render world (Bevy's own work
+    /// plus the bridge), ms: on a machine without a GPU the render world
+    /// rasterises on the CPU (lavapipe), on the cores the worker uses.
+    pub frame_ms: Vec<f64>,
+}
+
+/// Runs `scene` headless (no camera: what the bridge costs does not
+/// depend on what is drawn) until `gi_updates` updates are shown after
+/// `warm_up` of them, moving its lights a little every frame so that each
+/// update has new lights to read. Frames start every `frame_interval`
+/// (an app synchronised to its display, whose main thread waits between
+/// frames); `Duration::ZERO` runs them back to back.
+pub fn run_bridge(
+    scene: &RelightScene,
+    warm_up: u64,
+    gi_updates: u64,
+    frame_interval: Duration,
+    timeout: Duration,
+) -> Result<BridgeRun, String> {
+    let mut app = headless_app();
+    let scene_entity = app.world_mut().spawn(scene.clone()).id();
+    let started = Instant::now();
+    let mut run = BridgeRun::default();
+    let mut last_updates = 0;
+    let mut next_frame = Instant::now();
+    loop {
+        if started.elapsed() > timeout {
+            return Err(format!("{} GI updates took over {} s", gi_updates, timeout.as_secs()));
+        }
+        let now = Instant::now();
+        if next_frame > now {
+            std::thread::sleep(next_frame - now);
+        }
+        next_frame = Instant::now() + frame_interval;
+        let frame_start = Instant::now();
+        update_and_wait(&mut app)?;
+        let frame_ms = frame_start.elapsed().as_secs_f64() * 1e3;
+        let world = app.world_mut();
+        match world.get::<RelightStatus>(scene_entity).cloned() {
+            Some(RelightStatus::Failed(message)) => return Err(message),
+            Some(RelightStatus::Running) => {}
+            _ => {
+                std::thread::sleep(Duration::from_millis(20));
+                continue;
+            }
+        }
+        let mut lights = world.query_filtered::<&mut Transform, With<RelightLight>>();
+        for mut transform in lights.iter_mut(world) {
+            transform.rotate_around(Vec3::ZERO, Quat::from_rotation_y(0.002));
+        }
+        let stats = world
+            .get::<RelightStats>(scene_entity)
+            .cloned()
+            .unwrap_or_default();
+        if stats.updates <= warm_up {
+            last_updates = stats.updates;
+            continue;
+        }
+        run.bridge_ms.push(stats.bridge_ms);
+        run.frame_ms.push(frame_ms);
+        run.gi_age_frames.push(stats.gi_age_frames);
+        if stats.updates != last_updates {
+            last_updates = stats.updates;
+            run.updates.push(stats.stages.clone());
+        }
+        if run.updates.len() as u64 >= gi_updates {
+            return Ok(run);
+        }
+    }
 }
