@@ -89,7 +89,11 @@ fn main() -> ExitCode {
                 .sum()
         })
         .collect();
-    println!("{:<32} {:>10.3}", "technique total", median(technique_total));
+    println!(
+        "{:<32} {:>10.3}",
+        "technique total",
+        median(technique_total)
+    );
     println!(
         "{:<32} {:>10.3}",
         "bridge (main thread, a frame)",

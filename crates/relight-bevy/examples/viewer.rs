@@ -72,7 +72,13 @@ fn main() -> AppExit {
         .add_systems(Startup, setup)
         .add_systems(
             Update,
-            (place_camera, move_lights, switch_technique, update_panel, screenshot),
+            (
+                place_camera,
+                move_lights,
+                switch_technique,
+                update_panel,
+                screenshot,
+            ),
         )
         .run()
 }
@@ -128,7 +134,8 @@ fn place_camera(
             continue;
         }
         let v = |value: relight_core::Vec3| Vec3::from_array(value.to_array());
-        *transform = Transform::from_translation(v(camera.eye)).looking_at(v(camera.target), v(camera.up));
+        *transform =
+            Transform::from_translation(v(camera.eye)).looking_at(v(camera.target), v(camera.up));
         if let Projection::Perspective(perspective) = projection.as_mut() {
             perspective.fov = camera.fov_y_degrees.to_radians();
         }
@@ -255,7 +262,9 @@ fn screenshot(
     let Some(path) = &args.screenshot else {
         return;
     };
-    let ready = scenes.iter().any(|stats| stats.updates >= args.screenshot_after);
+    let ready = scenes
+        .iter()
+        .any(|stats| stats.updates >= args.screenshot_after);
     if !ready {
         return;
     }

@@ -257,7 +257,11 @@ pub fn run_bridge(
     let mut next_frame = Instant::now();
     loop {
         if started.elapsed() > timeout {
-            return Err(format!("{} GI updates took over {} s", gi_updates, timeout.as_secs()));
+            return Err(format!(
+                "{} GI updates took over {} s",
+                gi_updates,
+                timeout.as_secs()
+            ));
         }
         let now = Instant::now();
         if next_frame > now {

@@ -302,20 +302,21 @@ fn gltf_document(
             for (corner, vertex) in mesh.triangles[triangle].iter().enumerate() {
                 positions.extend(mesh.positions[*vertex as usize].to_array());
                 normals.extend(normal.to_array());
-                if let Some(uv) = mesh.texcoords.get(*vertex as usize) {
-                    uv0.extend(uv.to_array());
-                }
+                // Zero where the mesh has none: Bevy 0.19's shader for a
+                // lightmapped mesh with TEXCOORD_1 but no TEXCOORD_0 does
+                // not compile ("no definition in scope for identifier:
+                // uv").
+                let uv = mesh.texcoords.get(*vertex as usize).copied();
+                uv0.extend(uv.unwrap_or(Vec2::ZERO).to_array());
                 uv1.extend((atlas_uvs[triangle][corner] / atlas_size).to_array());
             }
         }
-        let mut attributes = json!({
+        let attributes = json!({
             "POSITION": buffer.push_floats(&positions, 3, true),
             "NORMAL": buffer.push_floats(&normals, 3, false),
+            "TEXCOORD_0": buffer.push_floats(&uv0, 2, false),
             "TEXCOORD_1": buffer.push_floats(&uv1, 2, false),
         });
-        if uv0.len() == uv1.len() {
-            attributes["TEXCOORD_0"] = json!(buffer.push_floats(&uv0, 2, false));
-        }
         primitives.push(json!({ "attributes": attributes, "material": material, "mode": 4 }));
     }
 
@@ -350,6 +351,11 @@ fn gltf_document(
                     "MOZ_lightmap": { "index": lightmap_texture, "texCoord": 1, "intensity": std::f32::consts::PI },
                 },
             });
+            if material.phong_exponent <= 1.0 {
+                // relight's Lambertian surfaces have no specular lobe;
+                // without this, glTF's default F0 of 0.04 adds one.
+                value["extensions"]["KHR_materials_specular"] = json!({ "specularFactor": 0.0 });
+            }
             let (colour, strength) = colour_and_scale(material.emission);
             if strength > 0.0 {
                 value["emissiveFactor"] = json!(colour.to_array());
@@ -392,7 +398,12 @@ fn gltf_document(
 
     let document = json!({
         "asset": { "version": "2.0", "generator": concat!("relight ", env!("CARGO_PKG_VERSION")) },
-        "extensionsUsed": ["MOZ_lightmap", "KHR_lights_punctual", "KHR_materials_emissive_strength"],
+        "extensionsUsed": [
+            "MOZ_lightmap",
+            "KHR_lights_punctual",
+            "KHR_materials_emissive_strength",
+            "KHR_materials_specular",
+        ],
         "extensions": { "KHR_lights_punctual": { "lights": punctual } },
         "scene": 0,
         "scenes": [{
