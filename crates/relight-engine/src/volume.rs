@@ -19,8 +19,8 @@ use relight_core::Rgb;
 use relight_technique::Technique;
 
 /// The six face normals in the order the texture's thirds and halves take
-/// them: +X, -X, +Y, -Y, +Z, -Z.
-const FACES: [Vec3; 6] = [
+/// them (the `face` of [`VolumeGrid::texel_index`]): +X, -X, +Y, -Y, +Z, -Z.
+pub const FACES: [Vec3; 6] = [
     Vec3::X,
     Vec3::NEG_X,
     Vec3::Y,

@@ -3,7 +3,7 @@
 //! crate, relight's own scene loader) and compared with what the
 //! technique computed.
 
-use glam::{UVec3, Vec3};
+use glam::UVec3;
 use relight_core::Rgb;
 use relight_engine::{
     export_scene, lightmap_texel, rgb9e5_gpu_decode, ExportSettings, LightmapLayout, TexelFormat,
@@ -160,17 +160,7 @@ fn exported_files_read_back_as_the_technique_computed() {
             zstd_level.is_some(),
         );
         let voxel = UVec3::new(1, 2, 1);
-        for (face, normal) in [
-            Vec3::X,
-            Vec3::NEG_X,
-            Vec3::Y,
-            Vec3::NEG_Y,
-            Vec3::Z,
-            Vec3::NEG_Z,
-        ]
-        .into_iter()
-        .enumerate()
-        {
+        for (face, normal) in relight_engine::volume::FACES.into_iter().enumerate() {
             let want = lightmap_texel(
                 technique.indirect_irradiance_in_space(grid.voxel_centre(voxel), normal),
             );
