@@ -272,6 +272,27 @@ pub fn bevy_light_to_relight(
     })
 }
 
+/// A Bevy camera as relight's: eye, a point ahead, up and field of view
+/// (what view-dependent light needs; the resolution is not used).
+pub(crate) fn relight_camera(
+    transform: &GlobalTransform,
+    projection: &Projection,
+) -> relight_scene::Camera {
+    let v = |value: Vec3| relight_core::Vec3::from_array(value.to_array());
+    let eye = transform.translation();
+    let fov_y_degrees = match projection {
+        Projection::Perspective(perspective) => perspective.fov.to_degrees(),
+        _ => relight_scene::Camera::default().fov_y_degrees,
+    };
+    relight_scene::Camera {
+        eye: v(eye),
+        target: v(eye + transform.forward().as_vec3()),
+        up: v(transform.up().as_vec3()),
+        fov_y_degrees,
+        ..relight_scene::Camera::default()
+    }
+}
+
 /// The scene camera's Bevy transform and projection.
 pub(crate) fn camera(camera: &relight_scene::Camera) -> (Transform, Projection) {
     let transform = Transform::from_translation(vec3(camera.eye))
@@ -288,6 +309,23 @@ pub(crate) fn camera(camera: &relight_scene::Camera) -> (Transform, Projection) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cameras_come_back_as_they_went() {
+        let scene_camera = relight_scene::Camera {
+            eye: relight_core::Vec3::new(1.0, 2.0, 3.0),
+            target: relight_core::Vec3::new(0.0, 1.0, 0.0),
+            up: relight_core::Vec3::Y,
+            fov_y_degrees: 50.0,
+            resolution: [64, 32],
+        };
+        let (transform, projection) = camera(&scene_camera);
+        let back = relight_camera(&GlobalTransform::from(transform), &projection);
+        let forward = |c: &relight_scene::Camera| (c.target - c.eye).normalize();
+        assert!((back.eye - scene_camera.eye).length() < 1e-5);
+        assert!((forward(&back) - forward(&scene_camera)).length() < 1e-5);
+        assert!((back.fov_y_degrees - 50.0).abs() < 1e-3);
+    }
 
     #[test]
     fn lights_come_back_as_they_went() {

@@ -203,6 +203,8 @@ struct Job {
     /// Bevy's frame when the lights were read.
     frame: u64,
     refresh_volume: bool,
+    /// The active 3D camera, for view-dependent (glossy) light.
+    camera: Option<relight_scene::Camera>,
 }
 
 struct Done {
@@ -392,7 +394,7 @@ fn work(
             .update(&Frame {
                 lights: &job.lights,
                 index: job.index,
-                camera: None,
+                camera: job.camera.as_ref(),
             })
             .map_err(|error| error.to_string())
             .map(|()| {
@@ -469,6 +471,7 @@ fn fail(status: &mut RelightStatus, message: String) {
 fn exchange_with_worker(
     mut scenes: Query<(&mut Worker, &mut RelightStats, &mut RelightStatus)>,
     lights: BevyLights,
+    cameras: Query<(&Camera, &GlobalTransform, &Projection), With<Camera3d>>,
     mut images: ResMut<Assets<Image>>,
     frame_count: Res<FrameCount>,
 ) {
@@ -519,11 +522,19 @@ fn exchange_with_worker(
             let refresh_volume = worker.volume.is_some()
                 && worker.updates_sent % u64::from(worker.volume_every) == 0;
             let frame = u64::from(frame_count.0);
+            let camera = cameras
+                .iter()
+                .filter(|(camera, _, _)| camera.is_active)
+                .max_by_key(|(camera, _, _)| camera.order)
+                .map(|(_, transform, projection)| {
+                    crate::convert::relight_camera(transform, projection)
+                });
             let job = Job {
                 lights: current.into_iter().map(|(_, light)| light).collect(),
                 index: worker.updates_sent,
                 frame,
                 refresh_volume,
+                camera,
             };
             if worker.jobs.send(job).is_ok() {
                 worker.in_flight = Some(frame);
