@@ -35,50 +35,26 @@ pub fn matching_exposure() -> bevy::camera::Exposure {
     }
 }
 
-/// One mesh a material: flat normals (relight shades with geometric
-/// normals), UV 0 for albedo textures and relight's atlas as UV 1.
+/// The scene's primitives (`relight_engine::static_primitives`) as Bevy
+/// meshes, with relight's atlas as UV 1.
 pub(crate) fn static_meshes(
     scene: &Scene,
     atlas: &relight_scene::atlas::Atlas,
 ) -> Vec<(u32, Mesh)> {
-    let mesh = &scene.mesh;
-    let size = relight_core::Vec2::new(atlas.width as f32, atlas.height as f32);
-    let mut by_material: Vec<Vec<usize>> = vec![Vec::new(); scene.materials.len()];
-    for (triangle, &material) in mesh.material_ids.iter().enumerate() {
-        by_material[material as usize].push(triangle);
-    }
-    by_material
+    relight_engine::static_primitives(scene, atlas)
         .into_iter()
-        .enumerate()
-        .filter(|(_, triangles)| !triangles.is_empty())
-        .map(|(material, triangles)| {
-            let corners = triangles.len() * 3;
-            let (mut positions, mut normals) =
-                (Vec::with_capacity(corners), Vec::with_capacity(corners));
-            let (mut uv0, mut uv1) = (Vec::with_capacity(corners), Vec::with_capacity(corners));
-            for &triangle in &triangles {
-                let normal = mesh.geometric_normal(triangle).to_array();
-                for (corner, &vertex) in mesh.triangles[triangle].iter().enumerate() {
-                    positions.push(mesh.positions[vertex as usize].to_array());
-                    normals.push(normal);
-                    uv0.push(
-                        mesh.texcoords
-                            .get(vertex as usize)
-                            .map_or([0.0; 2], |uv| uv.to_array()),
-                    );
-                    uv1.push((atlas.triangle_uvs[triangle][corner] / size).to_array());
-                }
-            }
-            let bevy_mesh = Mesh::new(
+        .map(|primitive| {
+            let corners = primitive.positions.len() as u32;
+            let mesh = Mesh::new(
                 PrimitiveTopology::TriangleList,
                 RenderAssetUsages::RENDER_WORLD,
             )
-            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, positions)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, normals)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, uv0)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_1, uv1)
-            .with_inserted_indices(Indices::U32((0..corners as u32).collect()));
-            (material as u32, bevy_mesh)
+            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, primitive.positions)
+            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, primitive.normals)
+            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, primitive.uv0)
+            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_1, primitive.uv1)
+            .with_inserted_indices(Indices::U32((0..corners).collect()));
+            (primitive.material, mesh)
         })
         .collect()
 }
@@ -116,7 +92,7 @@ pub(crate) fn material(
 
 /// An albedo texture as sRGB bytes with repeat addressing.
 pub(crate) fn albedo_image(texture: &relight_scene::Texture) -> Image {
-    let encode = |value: f32| (relight_core::colour::linear_to_srgb(value) * 255.0 + 0.5) as u8;
+    use relight_core::colour::linear_to_srgb8 as encode;
     let data = texture
         .texels
         .iter()

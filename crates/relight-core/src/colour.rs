@@ -32,6 +32,13 @@ pub fn linear_to_srgb(linear: f32) -> f32 {
     }
 }
 
+/// Linear channel value to an 8-bit sRGB code (clamped, rounded): PNG
+/// pixels and 8-bit textures.
+#[inline]
+pub fn linear_to_srgb8(linear: f32) -> u8 {
+    (linear_to_srgb(linear) * 255.0 + 0.5) as u8
+}
+
 /// True when every channel is finite and non-negative: the contract for
 /// light values read from user files.
 #[inline]

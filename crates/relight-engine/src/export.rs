@@ -28,9 +28,10 @@
 
 use crate::ktx2_file::{Ktx2Error, Ktx2Texture, TexelFormat};
 use crate::lightmap::{receiver_irradiance, LightmapLayout};
+use crate::primitives::static_primitives;
 use crate::units::{colour_and_scale, look_rotation, roughness_of, LUMENS_PER_WATT};
 use crate::volume::{fill_volume, VolumeGrid};
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use relight_core::Rgb;
 use relight_scene::{Light, Scene};
 use relight_technique::{SceneContext, Technique};
@@ -190,8 +191,7 @@ pub fn export_scene(
 
     let (document, buffer) = gltf_document(
         &context.scene,
-        context.atlas.triangle_uvs.as_slice(),
-        Vec2::new(context.atlas.width as f32, context.atlas.height as f32),
+        &context.atlas,
         lights,
         &textures,
         lightmaps,
@@ -214,7 +214,7 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
 }
 
 fn encode_srgb_png(texture: &relight_scene::Texture) -> Result<Vec<u8>, String> {
-    let encode = |value: f32| (relight_core::colour::linear_to_srgb(value) * 255.0 + 0.5) as u8;
+    use relight_core::colour::linear_to_srgb8 as encode;
     let pixels: Vec<u8> = texture
         .texels
         .iter()
@@ -278,47 +278,25 @@ impl BufferBuilder {
 
 fn gltf_document(
     scene: &Scene,
-    atlas_uvs: &[[Vec2; 3]],
-    atlas_size: Vec2,
+    atlas: &relight_scene::atlas::Atlas,
     lights: &[Light],
     albedo_textures: &[String],
     lightmaps: Value,
     scene_extras: Value,
 ) -> (Value, Vec<u8>) {
-    let mesh = &scene.mesh;
     let mut buffer = BufferBuilder::default();
-    let mut primitives = Vec::new();
-    for material in 0..scene.materials.len() as u32 {
-        let triangles: Vec<usize> = (0..mesh.triangles.len())
-            .filter(|&triangle| mesh.material_ids[triangle] == material)
-            .collect();
-        if triangles.is_empty() {
-            continue;
-        }
-        let (mut positions, mut normals, mut uv0, mut uv1) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for &triangle in &triangles {
-            let normal = mesh.geometric_normal(triangle);
-            for (corner, vertex) in mesh.triangles[triangle].iter().enumerate() {
-                positions.extend(mesh.positions[*vertex as usize].to_array());
-                normals.extend(normal.to_array());
-                // Zero where the mesh has none: Bevy 0.19's shader for a
-                // lightmapped mesh with TEXCOORD_1 but no TEXCOORD_0 does
-                // not compile ("no definition in scope for identifier:
-                // uv").
-                let uv = mesh.texcoords.get(*vertex as usize).copied();
-                uv0.extend(uv.unwrap_or(Vec2::ZERO).to_array());
-                uv1.extend((atlas_uvs[triangle][corner] / atlas_size).to_array());
-            }
-        }
-        let attributes = json!({
-            "POSITION": buffer.push_floats(&positions, 3, true),
-            "NORMAL": buffer.push_floats(&normals, 3, false),
-            "TEXCOORD_0": buffer.push_floats(&uv0, 2, false),
-            "TEXCOORD_1": buffer.push_floats(&uv1, 2, false),
-        });
-        primitives.push(json!({ "attributes": attributes, "material": material, "mode": 4 }));
-    }
+    let primitives: Vec<Value> = static_primitives(scene, atlas)
+        .iter()
+        .map(|primitive| {
+            let attributes = json!({
+                "POSITION": buffer.push_floats(primitive.positions.as_flattened(), 3, true),
+                "NORMAL": buffer.push_floats(primitive.normals.as_flattened(), 3, false),
+                "TEXCOORD_0": buffer.push_floats(primitive.uv0.as_flattened(), 2, false),
+                "TEXCOORD_1": buffer.push_floats(primitive.uv1.as_flattened(), 2, false),
+            });
+            json!({ "attributes": attributes, "material": primitive.material, "mode": 4 })
+        })
+        .collect();
 
     // Texture 0 is the lightmap; albedo textures follow.
     let lightmap_texture = 0;

@@ -19,6 +19,7 @@
 mod export;
 mod ktx2_file;
 mod lightmap;
+mod primitives;
 pub mod techniques;
 mod units;
 pub mod volume;
@@ -26,6 +27,7 @@ pub mod volume;
 pub use export::{export_scene, ExportError, ExportSettings, ExportSummary};
 pub use ktx2_file::{f16_of, rgb9e5_gpu, rgb9e5_gpu_decode, Ktx2Error, Ktx2Texture, TexelFormat};
 pub use lightmap::{receiver_irradiance, LightmapLayout};
+pub use primitives::{static_primitives, Primitive};
 pub use techniques::{open_technique, OpenError};
 pub use units::{
     colour_and_scale, directional_light_from_lux, directional_light_lux, ev100_matching_relight,

@@ -1,6 +1,6 @@
 //! Linear RGB images, EXR and PNG output, exposure and tone mapping.
 
-use relight_core::colour::linear_to_srgb;
+use relight_core::colour::linear_to_srgb8;
 use relight_core::{luminance, Rgb};
 use std::path::{Path, PathBuf};
 
@@ -112,8 +112,7 @@ impl Image {
             .iter()
             .flat_map(|pixel| {
                 let mapped = aces_fitted(*pixel * exposure);
-                [mapped.x, mapped.y, mapped.z]
-                    .map(|value| (linear_to_srgb(value) * 255.0 + 0.5) as u8)
+                [mapped.x, mapped.y, mapped.z].map(linear_to_srgb8)
             })
             .collect()
     }
