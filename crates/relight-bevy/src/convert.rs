@@ -43,20 +43,46 @@ pub(crate) fn static_meshes(
 ) -> Vec<(u32, Mesh)> {
     relight_engine::static_primitives(scene, atlas)
         .into_iter()
-        .map(|primitive| {
-            let corners = primitive.positions.len() as u32;
-            let mesh = Mesh::new(
-                PrimitiveTopology::TriangleList,
-                RenderAssetUsages::RENDER_WORLD,
-            )
-            .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, primitive.positions)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, primitive.normals)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, primitive.uv0)
-            .with_inserted_attribute(Mesh::ATTRIBUTE_UV_1, primitive.uv1)
-            .with_inserted_indices(Indices::U32((0..corners).collect()));
-            (primitive.material, mesh)
-        })
+        .map(bevy_mesh)
         .collect()
+}
+
+/// A moving mesh's primitives (`relight_engine::moving_primitives`) as
+/// Bevy meshes in the mesh's own space, without UV 1: Bevy lights them
+/// from the irradiance volume.
+pub(crate) fn moving_meshes(mesh: &relight_engine::MovingMesh) -> Vec<(u32, Mesh)> {
+    relight_engine::moving_primitives(mesh)
+        .into_iter()
+        .map(bevy_mesh)
+        .collect()
+}
+
+fn bevy_mesh(primitive: relight_engine::Primitive) -> (u32, Mesh) {
+    let corners = primitive.positions.len() as u32;
+    let mut mesh = Mesh::new(
+        PrimitiveTopology::TriangleList,
+        RenderAssetUsages::RENDER_WORLD,
+    )
+    .with_inserted_attribute(Mesh::ATTRIBUTE_POSITION, primitive.positions)
+    .with_inserted_attribute(Mesh::ATTRIBUTE_NORMAL, primitive.normals)
+    .with_inserted_attribute(Mesh::ATTRIBUTE_UV_0, primitive.uv0)
+    .with_inserted_indices(Indices::U32((0..corners).collect()));
+    if !primitive.uv1.is_empty() {
+        mesh.insert_attribute(Mesh::ATTRIBUTE_UV_1, primitive.uv1);
+    }
+    (primitive.material, mesh)
+}
+
+/// A relight pose (mesh space to world) as a Bevy transform.
+pub(crate) fn transform_of(pose: relight_core::Affine3A) -> Transform {
+    Transform::from_matrix(Mat4::from_cols_array(
+        &relight_core::Mat4::from(pose).to_cols_array(),
+    ))
+}
+
+/// A Bevy affine transform as a relight pose.
+pub(crate) fn pose_of(affine: bevy::math::Affine3A) -> relight_core::Affine3A {
+    relight_core::Affine3A::from_cols_array(&affine.to_cols_array())
 }
 
 /// relight's Lambertian (or Blinn-Phong) material as a `StandardMaterial`:

@@ -23,11 +23,13 @@
 //! in [`RelightStatus::Loading`]). When it is done the plugin spawns the
 //! static meshes as children (relight's atlas as `ATTRIBUTE_UV_1`, a
 //! `Lightmap` on each), the scene's lights as Bevy lights with shadow
-//! maps and [`RelightLight`] (Bevy draws direct light), and an
-//! `IrradianceVolume` over the scene for dynamic objects. A worker thread
+//! maps and [`RelightLight`] (Bevy draws direct light), the scene file's
+//! moving meshes with [`RelightMovingMesh`], and an `IrradianceVolume`
+//! over the scene for them and the app's own dynamic objects. A worker thread
 //! then owns the technique: each frame the main thread reads the Bevy
-//! lights' transforms, colours and intensities and, when the worker is
-//! free, hands them over; the worker updates the technique and fills the
+//! lights' transforms, colours and intensities and the moving meshes'
+//! transforms and, when the worker is free, hands them over with the
+//! active camera; the worker updates the technique and fills the
 //! lightmap's RGBA16F bytes (and, every `volume_every` updates, the
 //! volume's), which the main thread moves into the images: a frame never
 //! waits for GI, and [`RelightStats::gi_age_frames`] says how old the
@@ -44,4 +46,6 @@ mod runtime;
 pub mod snapshot;
 
 pub use convert::{bevy_light_to_relight, matching_exposure};
-pub use runtime::{RelightLight, RelightPlugin, RelightScene, RelightStats, RelightStatus};
+pub use runtime::{
+    RelightLight, RelightMovingMesh, RelightPlugin, RelightScene, RelightStats, RelightStatus,
+};

@@ -96,6 +96,19 @@ pub enum RelightStatus {
 #[derive(Component, Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RelightLight(pub usize);
 
+/// One of a scene's moving meshes (its `[[dynamic]]` entry `index`, from
+/// 0), spawned by the plugin at the scene file's first pose. The app moves
+/// it like any entity; each GI update reads its transform relative to its
+/// `scene` entity, and LightSkin moves the mesh through its maps to match
+/// (the other techniques light it without it blocking or reflecting).
+/// Bevy lights it from the irradiance volume. A despawned one stays where
+/// it was last seen.
+#[derive(Component, Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RelightMovingMesh {
+    pub scene: Entity,
+    pub index: usize,
+}
+
 /// What the last GI update cost and how old the light on screen is.
 #[derive(Component, Clone, Debug, Default)]
 pub struct RelightStats {
@@ -142,6 +155,7 @@ impl Progress for SharedProgress {
 struct Loaded {
     context: Arc<SceneContext>,
     technique: Box<dyn Technique>,
+    moving_meshes: Vec<relight_engine::MovingMesh>,
 }
 
 #[derive(Component)]
@@ -180,6 +194,7 @@ fn start_loading(
 fn load(settings: &RelightScene, progress: &SharedProgress) -> Result<Loaded, String> {
     progress.start(&format!("loading {}", settings.path.display()), 1);
     let scene = relight_scene::load_scene(&settings.path).map_err(|error| error.to_string())?;
+    let moving_meshes = relight_engine::moving_meshes(&scene).map_err(|error| error.to_string())?;
     let context = Arc::new(
         SceneContext::new(scene, ContextSettings::default()).map_err(|error| error.to_string())?,
     );
@@ -191,7 +206,11 @@ fn load(settings: &RelightScene, progress: &SharedProgress) -> Result<Loaded, St
         progress,
     )
     .map_err(|error| error.to_string())?;
-    Ok(Loaded { context, technique })
+    Ok(Loaded {
+        context,
+        technique,
+        moving_meshes,
+    })
 }
 
 /// A frame's lights for the worker, with the buffers it fills (recycled
@@ -205,6 +224,8 @@ struct Job {
     refresh_volume: bool,
     /// The active 3D camera, for view-dependent (glossy) light.
     camera: Option<relight_scene::Camera>,
+    /// Where the moving meshes are (none in the scene: `None`).
+    moving_mesh_poses: Option<Vec<relight_core::Affine3A>>,
 }
 
 struct Done {
@@ -224,6 +245,8 @@ struct Worker {
     volume_every: u32,
     lightmap: Handle<Image>,
     volume: Option<Handle<Image>>,
+    /// Each moving mesh's last seen pose relative to the scene entity.
+    moving_mesh_poses: Vec<relight_core::Affine3A>,
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -256,7 +279,11 @@ fn finish_loading(
             Ok(result) => result,
         };
         commands.entity(entity).remove::<Loading>();
-        let Loaded { context, technique } = match loaded {
+        let Loaded {
+            context,
+            technique,
+            moving_meshes: moving,
+        } = match loaded {
             Ok(loaded) => loaded,
             Err(message) => {
                 fail(&mut status, message);
@@ -304,6 +331,30 @@ fn finish_loading(
                         ..default()
                     },
                 ));
+            }
+            for (index, mesh) in moving.iter().enumerate() {
+                let mesh_materials: Vec<Handle<StandardMaterial>> = mesh
+                    .materials
+                    .iter()
+                    .map(|material| materials.add(convert::material(material, None)))
+                    .collect();
+                children
+                    .spawn((
+                        RelightMovingMesh {
+                            scene: entity,
+                            index,
+                        },
+                        convert::transform_of(mesh.pose(0)),
+                        Visibility::default(),
+                    ))
+                    .with_children(|parts| {
+                        for (material, part) in convert::moving_meshes(mesh) {
+                            parts.spawn((
+                                Mesh3d(meshes.add(part)),
+                                MeshMaterial3d(mesh_materials[material as usize].clone()),
+                            ));
+                        }
+                    });
             }
             if settings.spawn_lights {
                 for (index, light) in scene.lights.iter().enumerate() {
@@ -361,6 +412,7 @@ fn finish_loading(
             volume_every: settings.volume_every.max(1),
             lightmap,
             volume,
+            moving_mesh_poses: moving.iter().map(|mesh| mesh.pose(0)).collect(),
         });
         *status = RelightStatus::Running;
     }
@@ -395,6 +447,7 @@ fn work(
                 lights: &job.lights,
                 index: job.index,
                 camera: job.camera.as_ref(),
+                moving_mesh_poses: job.moving_mesh_poses.as_deref(),
             })
             .map_err(|error| error.to_string())
             .map(|()| {
@@ -469,13 +522,20 @@ fn fail(status: &mut RelightStatus, message: String) {
 /// Each frame: take a finished update (moving its bytes into the images),
 /// then hand the worker this frame's lights if it is free.
 fn exchange_with_worker(
-    mut scenes: Query<(&mut Worker, &mut RelightStats, &mut RelightStatus)>,
+    mut scenes: Query<(
+        Entity,
+        &GlobalTransform,
+        &mut Worker,
+        &mut RelightStats,
+        &mut RelightStatus,
+    )>,
     lights: BevyLights,
+    moving_meshes: Query<(&RelightMovingMesh, &GlobalTransform)>,
     cameras: Query<(&Camera, &GlobalTransform, &Projection), With<Camera3d>>,
     mut images: ResMut<Assets<Image>>,
     frame_count: Res<FrameCount>,
 ) {
-    for (mut worker, mut stats, mut status) in &mut scenes {
+    for (entity, root, mut worker, mut stats, mut status) in &mut scenes {
         let start = Instant::now();
         let finished = worker.done.lock().unwrap().try_recv();
         match finished {
@@ -511,13 +571,23 @@ fn exchange_with_worker(
             }
         }
         if worker.in_flight.is_none() && *status == RelightStatus::Running {
+            // relight's scene lives in the scene entity's space.
+            let to_scene = root.affine().inverse();
             let mut current: Vec<(usize, Light)> = lights
                 .iter()
                 .filter_map(|(marker, transform, point, spot, directional)| {
-                    crate::convert::bevy_light_to_relight(transform, point, spot, directional)
+                    let in_scene = GlobalTransform::from(to_scene * transform.affine());
+                    crate::convert::bevy_light_to_relight(&in_scene, point, spot, directional)
                         .map(|light| (marker.0, light))
                 })
                 .collect();
+            for (mesh, transform) in &moving_meshes {
+                if mesh.scene == entity {
+                    if let Some(pose) = worker.moving_mesh_poses.get_mut(mesh.index) {
+                        *pose = crate::convert::pose_of(to_scene * transform.affine());
+                    }
+                }
+            }
             current.sort_by_key(|(index, _)| *index);
             let refresh_volume = worker.volume.is_some()
                 && worker.updates_sent % u64::from(worker.volume_every) == 0;
@@ -535,6 +605,8 @@ fn exchange_with_worker(
                 frame,
                 refresh_volume,
                 camera,
+                moving_mesh_poses: (!worker.moving_mesh_poses.is_empty())
+                    .then(|| worker.moving_mesh_poses.clone()),
             };
             if worker.jobs.send(job).is_ok() {
                 worker.in_flight = Some(frame);

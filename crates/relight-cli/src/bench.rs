@@ -178,6 +178,7 @@ pub fn run(
             lights: &lights,
             index: index as u64,
             camera: None,
+            moving_mesh_poses: None,
         })?;
         progress.advance(1);
         if index < WARM_UP_FRAMES {

@@ -163,6 +163,7 @@ pub fn run(
                 lights: &lights,
                 index: index as u64,
                 camera: None,
+                moving_mesh_poses: None,
             })?;
             update_ms.push(technique.timings().total().as_secs_f64() * 1e3);
         }

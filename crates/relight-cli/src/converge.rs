@@ -195,6 +195,7 @@ pub fn run(
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })?;
         let update_ms = instance.timings().total().as_secs_f64() * 1e3;
         let bounces = instance.reference_bounces(settings.max_bounces);

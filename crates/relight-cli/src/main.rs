@@ -582,6 +582,7 @@ fn run(cli: Cli) -> Result<()> {
                     lights: &lights,
                     index: index as u64,
                     camera: None,
+                    moving_mesh_poses: None,
                 })?;
                 // Techniques that move meshes hand the renderer this frame's
                 // geometry; the others render the static scene.
@@ -740,6 +741,7 @@ fn run(cli: Cli) -> Result<()> {
                     lights: &lights,
                     index: index as u64,
                     camera: None,
+                    moving_mesh_poses: None,
                 })?;
             }
             let (lo, hi) = context.scene.mesh.bounds();

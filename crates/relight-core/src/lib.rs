@@ -14,7 +14,7 @@ pub mod sampling;
 pub mod sh;
 
 pub use colour::{luminance, Rgb, Rgb9e5};
-pub use glam::{Mat3, Mat4, UVec2, Vec2, Vec3, Vec3A, Vec4};
+pub use glam::{Affine3A, Mat3, Mat4, UVec2, Vec2, Vec3, Vec3A, Vec4};
 pub use sampling::{Pcg32, SampleStream};
 
 /// Lumens per watt between relight's radiometric values and an engine's

@@ -27,7 +27,13 @@ pub mod volume;
 pub use export::{export_scene, ExportError, ExportSettings, ExportSummary};
 pub use ktx2_file::{f16_of, rgb9e5_gpu, rgb9e5_gpu_decode, Ktx2Error, Ktx2Texture, TexelFormat};
 pub use lightmap::{receiver_irradiance, LightmapLayout};
-pub use primitives::{static_primitives, Primitive};
+pub use primitives::{moving_primitives, static_primitives, Primitive};
+/// The scene file's moving meshes (`[[dynamic]]`): LightSkin moves them
+/// through its maps; an engine draws them and tells the technique where
+/// they are (`Frame::moving_mesh_poses`).
+pub use relight_lightskin::dynamic::{
+    load_dynamic_meshes as moving_meshes, DynamicMesh as MovingMesh,
+};
 pub use techniques::{open_technique, OpenError};
 pub use units::{
     colour_and_scale, directional_light_from_lux, directional_light_lux, ev100_matching_relight,

@@ -28,6 +28,7 @@ fn lit_box() -> (Arc<SceneContext>, Box<dyn Technique>) {
             lights: &context.scene.lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .unwrap();
     (context, technique)

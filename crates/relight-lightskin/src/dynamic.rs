@@ -128,16 +128,15 @@ pub struct DynamicWorld {
 }
 
 impl DynamicWorld {
-    pub fn place(meshes: &[DynamicMesh], frame: u64) -> Self {
+    /// `meshes` at `poses` (one each, mesh space to world).
+    pub fn place(meshes: &[DynamicMesh], poses: &[Affine3A]) -> Self {
         let mut positions = Vec::new();
         let mut triangles = Vec::new();
         let mut materials = Vec::new();
         let mut material_ids = Vec::new();
         let mut triangle_offsets = Vec::with_capacity(meshes.len());
         let mut vertex_offsets = Vec::with_capacity(meshes.len());
-        let mut poses = Vec::with_capacity(meshes.len());
-        for mesh in meshes {
-            let pose = mesh.pose(frame);
+        for (mesh, &pose) in meshes.iter().zip(poses) {
             let first_vertex = positions.len() as u32;
             triangle_offsets.push(triangles.len() as u32);
             vertex_offsets.push(first_vertex);
@@ -156,7 +155,6 @@ impl DynamicWorld {
             let first_material = materials.len() as u32;
             material_ids.extend(mesh.mesh.material_ids.iter().map(|&id| id + first_material));
             materials.extend_from_slice(&mesh.materials);
-            poses.push(pose);
         }
         let triangle_normals = triangles
             .iter()
@@ -174,7 +172,7 @@ impl DynamicWorld {
             material_ids,
             triangle_offsets,
             vertex_offsets,
-            poses,
+            poses: poses.to_vec(),
             bvh,
         }
     }

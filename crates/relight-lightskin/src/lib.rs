@@ -142,7 +142,7 @@ pub mod visibility;
 use dynamic::{DynamicMesh, DynamicWorld};
 use gather::Sums;
 use geometry::Geometry;
-use glam::Vec3;
+use glam::{Affine3A, Vec3};
 use points::{Anchor, Interpolation};
 use rayon::prelude::*;
 use relight_core::Rgb;
@@ -696,6 +696,33 @@ impl LightSkin {
         irradiance_from_every_val(&self.vals, position, normal)
     }
 
+    /// Each moving mesh's pose this frame: the application's, or the
+    /// scene file's script at the frame's index.
+    fn moving_mesh_poses(&self, frame: &Frame) -> Result<Vec<Affine3A>, TechniqueError> {
+        let Some(poses) = frame.moving_mesh_poses else {
+            return Ok(self
+                .dynamic_meshes
+                .iter()
+                .map(|mesh| mesh.pose(frame.index))
+                .collect());
+        };
+        if poses.len() != self.dynamic_meshes.len() {
+            return Err(TechniqueError::Other(format!(
+                "the frame places {} moving meshes but the scene has {} ([[dynamic]] entries): pass one pose for each, in the scene file's order",
+                poses.len(),
+                self.dynamic_meshes.len()
+            )));
+        }
+        if let Some(index) = poses.iter().position(|pose| !pose.is_finite()) {
+            return Err(TechniqueError::Other(format!(
+                "moving mesh {} ({}): its pose is not finite",
+                index + 1,
+                self.dynamic_meshes[index].path.display()
+            )));
+        }
+        Ok(poses.to_vec())
+    }
+
     fn place_dynamic_points(&mut self, world: &DynamicWorld) {
         for (mesh_index, (first, anchors)) in self.points.dynamic_anchors.iter().enumerate() {
             let pose = world.poses[mesh_index];
@@ -1061,6 +1088,7 @@ impl Technique for LightSkin {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let poses = self.moving_mesh_poses(frame)?;
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
         self.lights.clear();
@@ -1070,7 +1098,7 @@ impl Technique for LightSkin {
         }
         if !self.dynamic_meshes.is_empty() {
             let world = timings.time("dynamic meshes", || {
-                DynamicWorld::place(&self.dynamic_meshes, frame.index)
+                DynamicWorld::place(&self.dynamic_meshes, &poses)
             });
             self.place_dynamic_points(&world);
             self.dynamic_world = Some(world);

@@ -51,6 +51,7 @@ fn updated(context: &Arc<SceneContext>, params: LightSkinParams) -> LightSkin {
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .unwrap();
     technique
@@ -604,6 +605,7 @@ fn moving_box_changes_the_indirect_light_on_the_floor() {
                 lights: &lights,
                 index,
                 camera: None,
+                moving_mesh_poses: None,
             })
             .unwrap();
         let irradiance = technique.receiver_irradiance().unwrap();
@@ -638,6 +640,48 @@ fn moving_box_changes_the_indirect_light_on_the_floor() {
     };
     assert!(changed(&floor_light[0], &floor_light[1]) > floor.len() / 50);
     assert!(changed(&floor_light[1], &floor_light[2]) > floor.len() / 50);
+}
+
+/// An application that moves the meshes itself (a game engine's
+/// entities) gets the same light as the scene file's script when it puts
+/// them where the script would; a wrong count or a broken pose is an error
+/// naming what to pass, not a panic.
+#[test]
+fn moving_meshes_follow_the_poses_the_frame_gives() {
+    let scene = relight_scene::load_scene(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/sequences/moving-box/scene.toml"),
+    )
+    .unwrap();
+    let context = context_of(scene, TexelDensity::default());
+    let meshes = relight_lightskin::dynamic::load_dynamic_meshes(&context.scene).unwrap();
+    let lights = context.scene.lights.clone();
+    let light_after = |index: u64, poses: Option<&[glam::Affine3A]>| {
+        let mut technique = LightSkinKind
+            .create(context.clone(), None, &[], &NoProgress)
+            .unwrap();
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index,
+                camera: None,
+                moving_mesh_poses: poses,
+            })
+            .map(|()| technique.receiver_irradiance().unwrap().to_vec())
+    };
+    let scripted = light_after(5, None).unwrap();
+    let poses: Vec<glam::Affine3A> = meshes.iter().map(|mesh| mesh.pose(5)).collect();
+    // Frame index 0: the poses, not the index, place the box.
+    assert_eq!(light_after(0, Some(&poses)).unwrap(), scripted);
+    assert_ne!(light_after(0, None).unwrap(), scripted);
+    let wrong_count = light_after(0, Some(&[])).unwrap_err().to_string();
+    assert!(wrong_count.contains("[[dynamic]]"), "{wrong_count}");
+    let broken = [glam::Affine3A::from_translation(Vec3::new(
+        f32::NAN,
+        0.0,
+        0.0,
+    ))];
+    let not_finite = light_after(0, Some(&broken)).unwrap_err().to_string();
+    assert!(not_finite.contains("box.obj"), "{not_finite}");
 }
 
 const PLY_ASCII: &str = "ply
@@ -740,6 +784,7 @@ fn a_point_cloud_lights_the_scene() {
             lights: &[],
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .unwrap();
     let total: f32 = technique
@@ -778,6 +823,7 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .unwrap();
     let errors = indirect_errors(&context, &lights, technique.as_ref(), settings, 1024, 4096);
@@ -947,6 +993,7 @@ fn glossy_light_follows_the_frames_camera() {
                 lights: &lights,
                 index: 0,
                 camera,
+                moving_mesh_poses: None,
             })
             .unwrap();
         technique

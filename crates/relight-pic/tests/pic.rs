@@ -74,6 +74,7 @@ fn load_and_update(
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .expect("update");
     technique

@@ -124,6 +124,7 @@ fn main() {
                     lights: frame_lights,
                     index: index as u64,
                     camera: None,
+                    moving_mesh_poses: None,
                 })
                 .expect("update");
                 let values = prm.receiver_irradiance().expect("lightmap").to_vec();

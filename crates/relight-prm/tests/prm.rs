@@ -35,6 +35,7 @@ fn baked_and_updated(context: &Arc<SceneContext>) -> Box<dyn relight_technique::
         lights: &context.scene.lights,
         index: 0,
         camera: None,
+        moving_mesh_poses: None,
     })
     .unwrap();
     prm
@@ -91,6 +92,7 @@ fn lightmap_errors(
                 lights: &lights,
                 index: 0,
                 camera: None,
+                moving_mesh_poses: None,
             })
             .unwrap();
             error_norms(prm.receiver_irradiance().unwrap(), &reference.mean).relative_rmse
@@ -540,6 +542,7 @@ fn closed_boxes_within_fifteen_percent_over_tiles() {
                 lights: &context.scene.lights,
                 index: 0,
                 camera: None,
+                moving_mesh_poses: None,
             })
             .unwrap();
             relight_render::convergence::measure_against_path_tracer(

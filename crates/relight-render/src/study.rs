@@ -176,6 +176,7 @@ pub fn run_study(
                 lights: &lights,
                 index: 0,
                 camera: None,
+                moving_mesh_poses: None,
             })
             .expect("update");
         let values = technique

@@ -38,6 +38,7 @@ fn path_traced_lightmap_matches_per_pixel_path_tracing() {
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .unwrap();
     let lightmapped =

@@ -60,6 +60,7 @@ fn main() {
                 lights: &lights,
                 index: index as u64,
                 camera: None,
+                moving_mesh_poses: None,
             };
             full.update(&frame).expect("update");
             staggered.update(&frame).expect("update");

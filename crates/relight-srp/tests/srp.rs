@@ -63,6 +63,7 @@ fn srp(context: &Arc<SceneContext>, params: &[(&str, &str)]) -> Box<dyn Techniqu
             lights: &lights,
             index: 0,
             camera: None,
+            moving_mesh_poses: None,
         })
         .expect("update");
     technique

@@ -28,6 +28,11 @@ pub struct Frame<'a> {
     /// The camera this frame is seen from, for view-dependent (glossy)
     /// indirect light; `None`: the scene file's camera.
     pub camera: Option<&'a relight_scene::Camera>,
+    /// Where the scene's moving meshes are this frame (mesh space to world,
+    /// in the scene file's `[[dynamic]]` order) when the application moves
+    /// them; `None`: each follows the motion its scene file scripts for
+    /// frame `index`. Techniques of static scenes ignore it.
+    pub moving_mesh_poses: Option<&'a [glam::Affine3A]>,
 }
 
 /// Wall-clock time of each stage of the last update, in pipeline order.

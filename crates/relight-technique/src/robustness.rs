@@ -38,6 +38,7 @@ pub fn check_damaged_payloads(
                         lights: &lights,
                         index: 0,
                         camera: None,
+                        moving_mesh_poses: None,
                     })
                     .is_ok(),
                 Err(_) => false,
