@@ -8,17 +8,32 @@
 //! arrows move the point and spot lights around the scene's centre (left,
 //! right) and up and down; the right mouse button dragged turns the sun;
 //! 1-4 switch technique (PIC, SRP, PRM, LightSkin; bakes in memory unless
-//! --bake fits), 0 shows direct light only. The panel shows frames a
-//! second, the GI update's stages on the worker, its memory, the bridge's
-//! main-thread time and the GI's age in frames.
+//! --bake fits), 0 shows direct light only; R shows relight's path-traced
+//! reference of the current view instead, refined pass by pass while the
+//! camera and the lights rest (a quarter of the window's resolution, all
+//! bounces; both views use Reinhard tone mapping, so they compare
+//! directly). The panel shows frames a second, the GI update's stages on
+//! the worker, its memory, the bridge's main-thread time and the GI's age
+//! in frames. The scene file's moving meshes ([[dynamic]]) go back and
+//! forth along their scripted motion (M pauses them, as does the
+//! reference view); LightSkin moves them through its maps.
 
+use bevy::asset::RenderAssetUsages;
 use bevy::camera_controller::free_camera::{FreeCamera, FreeCameraPlugin};
+use bevy::core_pipeline::tonemapping::Tonemapping;
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
 use bevy::input::mouse::AccumulatedMouseMotion;
 use bevy::prelude::*;
+use bevy::render::render_resource::{Extent3d, TextureDimension, TextureFormat};
 use clap::Parser;
-use relight_bevy::{RelightLight, RelightPlugin, RelightScene, RelightStats, RelightStatus};
+use relight_bevy::{
+    RelightContext, RelightLight, RelightLights, RelightMovingMeshes, RelightPlugin, RelightScene,
+    RelightStats, RelightStatus,
+};
+use relight_scene::Light;
 use std::path::PathBuf;
+use std::sync::mpsc::{channel, Receiver};
+use std::sync::Mutex;
 
 #[derive(Parser, Resource, Clone)]
 struct Args {
@@ -36,6 +51,10 @@ struct Args {
     screenshot: Option<PathBuf>,
     #[arg(long, default_value_t = 10)]
     screenshot_after: u64,
+    /// Start with the reference view on (R); a --screenshot then waits
+    /// for --screenshot-after passes of it.
+    #[arg(long)]
+    reference: bool,
 }
 
 #[derive(Component)]
@@ -68,7 +87,11 @@ fn main() -> AppExit {
             FrameTimeDiagnosticsPlugin::default(),
         ))
         .insert_resource(GlobalAmbientLight::NONE)
-        .insert_resource(args)
+        .insert_resource(args.clone())
+        .insert_resource(Reference {
+            on: args.reference,
+            ..default()
+        })
         .add_systems(Startup, setup)
         .add_systems(
             Update,
@@ -77,6 +100,8 @@ fn main() -> AppExit {
                 move_lights,
                 switch_technique,
                 update_panel,
+                reference_view,
+                animate_moving_meshes,
                 screenshot,
             ),
         )
@@ -94,8 +119,23 @@ fn scene_of(args: &Args, technique: &str) -> RelightScene {
 fn setup(mut commands: Commands, args: Res<Args>) {
     commands.spawn(scene_of(&args, &args.technique));
     commands.spawn((
+        ReferenceOverlay,
+        ImageNode::default(),
+        // Under the panel.
+        ZIndex(-1),
+        Node {
+            position_type: PositionType::Absolute,
+            width: percent(100),
+            height: percent(100),
+            ..default()
+        },
+        Visibility::Hidden,
+    ));
+    commands.spawn((
         Camera3d::default(),
         bevy::camera::Hdr,
+        // The reference view applies the same curve to its pixels.
+        Tonemapping::Reinhard,
         relight_bevy::matching_exposure(),
         FreeCamera {
             walk_speed: 2.0,
@@ -212,6 +252,7 @@ fn switch_technique(
 }
 
 fn update_panel(
+    reference: Res<Reference>,
     scenes: Query<(&RelightScene, &RelightStatus, &RelightStats)>,
     diagnostics: Res<DiagnosticsStore>,
     mut panel: Query<&mut Text, With<Panel>>,
@@ -244,10 +285,234 @@ fn update_panel(
             }
         }
     }
-    text.push_str("\nWASD/QE + left mouse: fly   arrows: lights   right drag: sun\n1 PIC  2 SRP  3 PRM  4 LightSkin  0 direct only");
+    if reference.on {
+        text.push_str(&format!(
+            "reference view: {} passes of {REFERENCE_SPP} paths a pixel{}\n",
+            reference.passes,
+            if reference.passes == 0 {
+                " (waiting for the camera and lights to rest)"
+            } else {
+                ""
+            }
+        ));
+    }
+    text.push_str("\nWASD/QE + left mouse: fly   arrows: lights   right drag: sun\n1 PIC  2 SRP  3 PRM  4 LightSkin  0 direct only   R reference   M moving meshes");
     for mut panel in &mut panel {
         **panel = text.clone();
     }
+}
+
+/// Script frames the moving meshes have run, unless paused.
+#[derive(Default)]
+struct MotionClock {
+    frames: f32,
+    paused: bool,
+}
+
+/// Moves the scene file's moving meshes like an app moves any entity:
+/// along their scripted velocity and spin, 10 script frames a second,
+/// back and forth over the first 8 (the shipped sequence's box crosses
+/// the room in about that many). M pauses them, and so does the reference
+/// view, which needs the scene to rest.
+fn animate_moving_meshes(
+    keys: Res<ButtonInput<KeyCode>>,
+    time: Res<Time>,
+    mut clock: Local<MotionClock>,
+    scenes: Query<&RelightContext>,
+    mut meshes: Query<(&relight_bevy::RelightMovingMesh, &mut Transform)>,
+    mut scripts: Local<Option<Vec<relight_engine::MovingMesh>>>,
+    reference: Res<Reference>,
+) {
+    if keys.just_pressed(KeyCode::KeyM) {
+        clock.paused = !clock.paused;
+    }
+    if clock.paused || reference.on {
+        return;
+    }
+    let Some(context) = scenes.iter().next() else {
+        return;
+    };
+    let scripts = scripts
+        .get_or_insert_with(|| relight_engine::moving_meshes(&context.0.scene).unwrap_or_default());
+    clock.frames += time.delta_secs() * 10.0;
+    let frame = 8.0 - (clock.frames.rem_euclid(16.0) - 8.0).abs();
+    for (marker, mut transform) in &mut meshes {
+        let Some(script) = scripts.get(marker.index) else {
+            continue;
+        };
+        let angles = (script.rotation + script.spin * frame)
+            .to_array()
+            .map(f32::to_radians);
+        let translation = script.translation + script.velocity * frame;
+        *transform =
+            Transform::from_translation(Vec3::from_array(translation.to_array())).with_rotation(
+                Quat::from_euler(EulerRot::XYZ, angles[0], angles[1], angles[2]),
+            );
+    }
+}
+
+/// Paths a pixel in each pass of the reference view.
+const REFERENCE_SPP: u32 = 2;
+/// Frames the camera and lights must rest before the reference starts.
+const REFERENCE_REST_FRAMES: u32 = 5;
+
+#[derive(Component)]
+struct ReferenceOverlay;
+
+/// A traced pass: the view generation it was traced for, and its pixels.
+type Pass = (u64, Vec<relight_core::Rgb>);
+
+/// The progressive reference: the sum of the passes so far for the view
+/// and lights they were traced with.
+#[derive(Resource, Default)]
+struct Reference {
+    on: bool,
+    /// Camera, lights and moving meshes' poses the passes were traced for.
+    view: Option<(Transform, Vec<Light>, Vec<relight_core::Affine3A>)>,
+    resting_frames: u32,
+    sum: Vec<[f64; 3]>,
+    passes: u32,
+    size: (u32, u32),
+    in_flight: Option<Mutex<Receiver<Pass>>>,
+    /// Bumped when the view changes, so a pass traced for the old view is
+    /// dropped.
+    generation: u64,
+    image: Option<Handle<Image>>,
+}
+
+/// R toggles relight's path-traced reference of the current view: a pass
+/// of REFERENCE_SPP paths a pixel at a time on a thread, averaged into
+/// the overlay, started again whenever the camera or a light moves.
+#[allow(clippy::too_many_arguments)]
+fn reference_view(
+    keys: Res<ButtonInput<KeyCode>>,
+    mut reference: ResMut<Reference>,
+    scenes: Query<(Entity, &GlobalTransform, &RelightContext)>,
+    cameras: Query<(&Transform, &GlobalTransform, &Projection), With<ViewerCamera>>,
+    lights: RelightLights,
+    moving_meshes: RelightMovingMeshes,
+    windows: Query<&Window>,
+    mut overlay: Query<(&mut ImageNode, &mut Visibility), With<ReferenceOverlay>>,
+    mut images: ResMut<Assets<Image>>,
+) {
+    if keys.just_pressed(KeyCode::KeyR) {
+        reference.on = !reference.on;
+        reference.view = None;
+    }
+    let Ok((mut node, mut visibility)) = overlay.single_mut() else {
+        return;
+    };
+    let (Some((scene, scene_transform, context)), Ok((transform, global, projection))) =
+        (scenes.iter().next(), cameras.single())
+    else {
+        return;
+    };
+    if !reference.on {
+        *visibility = Visibility::Hidden;
+        return;
+    }
+    let current = relight_bevy::relight_lights(&lights, scene_transform);
+    let mut poses = vec![relight_core::Affine3A::IDENTITY; moving_meshes.iter().len()];
+    relight_bevy::read_moving_mesh_poses(&moving_meshes, scene, scene_transform, &mut poses);
+    let view = (*transform, current, poses);
+    if reference.view.as_ref() != Some(&view) {
+        let window = windows.iter().next().map_or((1280, 720), |window| {
+            (window.physical_width(), window.physical_height())
+        });
+        let size = ((window.0 / 4).max(16), (window.1 / 4).max(16));
+        reference.view = Some(view);
+        reference.resting_frames = 0;
+        reference.passes = 0;
+        reference.size = size;
+        reference.sum = vec![[0.0; 3]; (size.0 * size.1) as usize];
+        reference.generation += 1;
+        reference.in_flight = None;
+        *visibility = Visibility::Hidden;
+        return;
+    }
+    reference.resting_frames += 1;
+    if let Some(receiver) = &reference.in_flight {
+        let finished = receiver.lock().unwrap().try_recv();
+        if let Ok((generation, pixels)) = finished {
+            reference.in_flight = None;
+            if generation == reference.generation {
+                for (sum, pixel) in reference.sum.iter_mut().zip(&pixels) {
+                    for channel in 0..3 {
+                        sum[channel] += f64::from(pixel[channel]);
+                    }
+                }
+                reference.passes += 1;
+                let image = reference_image(&reference);
+                let handle = match reference.image.clone() {
+                    Some(handle) => {
+                        let _ = images.insert(&handle, image);
+                        handle
+                    }
+                    None => images.add(image),
+                };
+                reference.image = Some(handle.clone());
+                node.image = handle;
+                *visibility = Visibility::Visible;
+            }
+        }
+    }
+    if reference.in_flight.is_none() && reference.resting_frames >= REFERENCE_REST_FRAMES {
+        let (sender, receiver) = channel();
+        let context = context.0.clone();
+        let (_, lights, poses) = reference.view.clone().unwrap();
+        let mut camera = relight_bevy::relight_camera(global, projection);
+        camera.resolution = [reference.size.0, reference.size.1];
+        let generation = reference.generation;
+        let settings = relight_trace::path::PathSettings {
+            seed: u64::from(reference.passes) + 1,
+            ..Default::default()
+        };
+        std::thread::spawn(move || {
+            // The moving meshes where they are now, in the traced scene.
+            let meshes = relight_engine::moving_meshes(&context.scene).unwrap_or_default();
+            let frame_context = (!meshes.is_empty() && meshes.len() == poses.len()).then(|| {
+                let world = relight_engine::MovingWorld::place(&meshes, &poses);
+                context.with_frame_geometry(world.merged_into(&context.scene))
+            });
+            let renders = relight_render::render::render_reference_view(
+                frame_context.as_ref().unwrap_or(&context),
+                &lights,
+                &camera,
+                settings,
+                REFERENCE_SPP,
+                &relight_technique::NoProgress,
+            );
+            let _ = sender.send((generation, renders.full.pixels));
+        });
+        reference.in_flight = Some(Mutex::new(receiver));
+    }
+}
+
+/// The passes' mean, Reinhard-mapped like the 3D view, as sRGB bytes.
+fn reference_image(reference: &Reference) -> Image {
+    let scale = 1.0 / f64::from(reference.passes.max(1));
+    let data = reference
+        .sum
+        .iter()
+        .flat_map(|sum| {
+            let channel = |value: f64| {
+                let radiance = (value * scale) as f32;
+                relight_core::colour::linear_to_srgb8(radiance / (1.0 + radiance))
+            };
+            [channel(sum[0]), channel(sum[1]), channel(sum[2]), 255]
+        })
+        .collect();
+    Image::new(
+        Extent3d {
+            width: reference.size.0,
+            height: reference.size.1,
+            depth_or_array_layers: 1,
+        },
+        TextureDimension::D2,
+        data,
+        TextureFormat::Rgba8UnormSrgb,
+        RenderAssetUsages::RENDER_WORLD | RenderAssetUsages::MAIN_WORLD,
+    )
 }
 
 /// With --screenshot: saves the window once the GI has run for a while,
@@ -256,15 +521,20 @@ fn screenshot(
     mut commands: Commands,
     args: Res<Args>,
     scenes: Query<&RelightStats>,
+    reference: Res<Reference>,
     mut taken: Local<u32>,
     mut exit: MessageWriter<AppExit>,
 ) {
     let Some(path) = &args.screenshot else {
         return;
     };
-    let ready = scenes
-        .iter()
-        .any(|stats| stats.updates >= args.screenshot_after);
+    let ready = if reference.on {
+        u64::from(reference.passes) >= args.screenshot_after
+    } else {
+        scenes
+            .iter()
+            .any(|stats| stats.updates >= args.screenshot_after)
+    };
     if !ready {
         return;
     }

@@ -276,7 +276,7 @@ pub fn bevy_light_to_relight(
 
 /// A Bevy camera as relight's: eye, a point ahead, up and field of view
 /// (what view-dependent light needs; the resolution is not used).
-pub(crate) fn relight_camera(
+pub fn relight_camera(
     transform: &GlobalTransform,
     projection: &Projection,
 ) -> relight_scene::Camera {

@@ -45,7 +45,9 @@ mod convert;
 mod runtime;
 pub mod snapshot;
 
-pub use convert::{bevy_light_to_relight, matching_exposure};
+pub use convert::{bevy_light_to_relight, matching_exposure, relight_camera};
 pub use runtime::{
-    RelightLight, RelightMovingMesh, RelightPlugin, RelightScene, RelightStats, RelightStatus,
+    read_moving_mesh_poses, relight_lights, RelightContext, RelightLight, RelightLights,
+    RelightMovingMesh, RelightMovingMeshes, RelightPlugin, RelightScene, RelightStats,
+    RelightStatus,
 };

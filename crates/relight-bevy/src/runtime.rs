@@ -21,10 +21,39 @@ pub struct RelightPlugin;
 
 impl Plugin for RelightPlugin {
     fn build(&self, app: &mut App) {
-        app.add_systems(
-            Update,
-            (start_loading, finish_loading, exchange_with_worker).chain(),
-        );
+        // The exchange reads the lights' and moving meshes' global
+        // transforms, so it runs after this frame's propagation: before
+        // it, what the app moved in Update (and what loading just
+        // spawned, still at the origin) has not reached them.
+        app.add_systems(Update, (start_loading, finish_loading).chain())
+            .add_systems(
+                PostUpdate,
+                exchange_with_worker.after(bevy::transform::TransformSystems::Propagate),
+            );
+    }
+
+    /// On a software rasteriser (Mesa's lavapipe: CI, machines without a
+    /// GPU) Bevy 0.19.1's GPU clustering leaves the irradiance volume out
+    /// of every cluster, and moving meshes lit only by it render black;
+    /// clustering on the CPU lights them. Runs after Bevy's PBR plugin
+    /// has chosen (`finish` follows plugin order).
+    fn finish(&self, app: &mut App) {
+        let software = app
+            .get_sub_app(bevy::render::RenderApp)
+            .and_then(|render| {
+                render
+                    .world()
+                    .get_resource::<bevy::render::renderer::RenderAdapterInfo>()
+            })
+            .is_some_and(|info| format!("{:?}", info.device_type) == "Cpu");
+        if software {
+            if let Some(mut settings) = app
+                .world_mut()
+                .get_resource_mut::<bevy::light::cluster::GlobalClusterSettings>()
+            {
+                settings.gpu_clustering = None;
+            }
+        }
     }
 }
 
@@ -108,6 +137,12 @@ pub struct RelightMovingMesh {
     pub scene: Entity,
     pub index: usize,
 }
+
+/// The loaded scene (geometry, BVH, atlas, emitters) of a running
+/// [`RelightScene`], for apps that trace it themselves (the viewer's
+/// reference view).
+#[derive(Component, Clone)]
+pub struct RelightContext(pub Arc<SceneContext>);
 
 /// What the last GI update cost and how old the light on screen is.
 #[derive(Component, Clone, Debug, Default)]
@@ -390,6 +425,9 @@ fn finish_loading(
         let static_direct = (!settings.indirect_only && context.direct().has_static_light())
             .then(|| static_direct_light(&context));
         stats.camera = Some(scene.camera.clone());
+        commands
+            .entity(entity)
+            .insert(RelightContext(context.clone()));
         let (jobs, job_receiver) = channel();
         let (done_sender, done) = channel();
         let context = context.clone();
@@ -502,7 +540,8 @@ fn work(
     }
 }
 
-type BevyLights<'w, 's> = Query<
+/// The Bevy lights relight reads each frame.
+pub type RelightLights<'w, 's> = Query<
     'w,
     's,
     (
@@ -513,6 +552,46 @@ type BevyLights<'w, 's> = Query<
         Option<&'static DirectionalLight>,
     ),
 >;
+
+/// The scene's moving meshes as the app has placed them.
+pub type RelightMovingMeshes<'w, 's> =
+    Query<'w, 's, (&'static RelightMovingMesh, &'static GlobalTransform)>;
+
+/// The lights as relight sees them, in [`RelightLight`] order, in the
+/// space of the scene entity whose global transform is `scene` (relight's
+/// scene lives there).
+pub fn relight_lights(lights: &RelightLights, scene: &GlobalTransform) -> Vec<Light> {
+    let to_scene = scene.affine().inverse();
+    let mut ordered: Vec<(usize, Light)> = lights
+        .iter()
+        .filter_map(|(marker, transform, point, spot, directional)| {
+            let in_scene = GlobalTransform::from(to_scene * transform.affine());
+            crate::convert::bevy_light_to_relight(&in_scene, point, spot, directional)
+                .map(|light| (marker.0, light))
+        })
+        .collect();
+    ordered.sort_by_key(|(index, _)| *index);
+    ordered.into_iter().map(|(_, light)| light).collect()
+}
+
+/// Writes the poses (mesh space to the scene entity's space) of `scene`'s
+/// moving meshes into `poses`, indexed by [`RelightMovingMesh::index`];
+/// meshes that are gone keep what `poses` held.
+pub fn read_moving_mesh_poses(
+    meshes: &RelightMovingMeshes,
+    scene: Entity,
+    scene_transform: &GlobalTransform,
+    poses: &mut [relight_core::Affine3A],
+) {
+    let to_scene = scene_transform.affine().inverse();
+    for (mesh, transform) in meshes {
+        if mesh.scene == scene {
+            if let Some(pose) = poses.get_mut(mesh.index) {
+                *pose = crate::convert::pose_of(to_scene * transform.affine());
+            }
+        }
+    }
+}
 
 fn fail(status: &mut RelightStatus, message: String) {
     error!("relight: {message}");
@@ -529,8 +608,8 @@ fn exchange_with_worker(
         &mut RelightStats,
         &mut RelightStatus,
     )>,
-    lights: BevyLights,
-    moving_meshes: Query<(&RelightMovingMesh, &GlobalTransform)>,
+    lights: RelightLights,
+    moving_meshes: RelightMovingMeshes,
     cameras: Query<(&Camera, &GlobalTransform, &Projection), With<Camera3d>>,
     mut images: ResMut<Assets<Image>>,
     frame_count: Res<FrameCount>,
@@ -572,23 +651,8 @@ fn exchange_with_worker(
         }
         if worker.in_flight.is_none() && *status == RelightStatus::Running {
             // relight's scene lives in the scene entity's space.
-            let to_scene = root.affine().inverse();
-            let mut current: Vec<(usize, Light)> = lights
-                .iter()
-                .filter_map(|(marker, transform, point, spot, directional)| {
-                    let in_scene = GlobalTransform::from(to_scene * transform.affine());
-                    crate::convert::bevy_light_to_relight(&in_scene, point, spot, directional)
-                        .map(|light| (marker.0, light))
-                })
-                .collect();
-            for (mesh, transform) in &moving_meshes {
-                if mesh.scene == entity {
-                    if let Some(pose) = worker.moving_mesh_poses.get_mut(mesh.index) {
-                        *pose = crate::convert::pose_of(to_scene * transform.affine());
-                    }
-                }
-            }
-            current.sort_by_key(|(index, _)| *index);
+            let current = relight_lights(&lights, root);
+            read_moving_mesh_poses(&moving_meshes, entity, root, &mut worker.moving_mesh_poses);
             let refresh_volume = worker.volume.is_some()
                 && worker.updates_sent % u64::from(worker.volume_every) == 0;
             let frame = u64::from(frame_count.0);
@@ -600,7 +664,7 @@ fn exchange_with_worker(
                     crate::convert::relight_camera(transform, projection)
                 });
             let job = Job {
-                lights: current.into_iter().map(|(_, light)| light).collect(),
+                lights: current,
                 index: worker.updates_sent,
                 frame,
                 refresh_volume,

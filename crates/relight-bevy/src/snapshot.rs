@@ -202,12 +202,6 @@ fn headless_app() -> App {
     .init_resource::<Captured>();
     app.finish();
     app.cleanup();
-    // Bevy 0.19.1's GPU clustering on lavapipe leaves irradiance volumes
-    // out of every cluster (a moving mesh lit only by the volume rendered
-    // black; with CPU clustering it is lit): snapshots cluster on the CPU.
-    app.world_mut()
-        .resource_mut::<bevy::light::cluster::GlobalClusterSettings>()
-        .gpu_clustering = None;
     app
 }
 

@@ -32,7 +32,7 @@ pub use primitives::{moving_primitives, static_primitives, Primitive};
 /// through its maps; an engine draws them and tells the technique where
 /// they are (`Frame::moving_mesh_poses`).
 pub use relight_lightskin::dynamic::{
-    load_dynamic_meshes as moving_meshes, DynamicMesh as MovingMesh,
+    load_dynamic_meshes as moving_meshes, DynamicMesh as MovingMesh, DynamicWorld as MovingWorld,
 };
 pub use techniques::{open_technique, OpenError};
 pub use units::{

@@ -62,7 +62,8 @@ fn render_pixels(
     renders
 }
 
-/// Path-traced reference images with `spp` jittered samples per pixel (box filter).
+/// Path-traced reference images of the scene camera with `spp` jittered
+/// samples per pixel (box filter).
 pub fn render_reference(
     context: &SceneContext,
     lights: &[Light],
@@ -70,9 +71,30 @@ pub fn render_reference(
     spp: u32,
     progress: &dyn Progress,
 ) -> Renders {
+    render_reference_view(
+        context,
+        lights,
+        &context.scene.camera,
+        settings,
+        spp,
+        progress,
+    )
+}
+
+/// [`render_reference`] from any `camera` (an interactive viewer's):
+/// passes with different `settings.seed` are independent, so a viewer
+/// averages them into a progressive reference.
+pub fn render_reference_view(
+    context: &SceneContext,
+    lights: &[Light],
+    camera: &relight_scene::Camera,
+    settings: PathSettings,
+    spp: u32,
+    progress: &dyn Progress,
+) -> Renders {
     let direct = context.direct();
     let tracer = PathTracer::new(&direct, settings);
-    let camera = CameraRays::new(&context.scene.camera);
+    let camera = CameraRays::new(camera);
     let spp = spp.max(1);
     render_pixels(
         camera.width,
