@@ -180,11 +180,9 @@ pub(crate) fn float_image(width: u32, height: u32, depth: u32, data: Vec<u8>) ->
 /// where Bevy may cut point and spot lights off (relight's fall off with
 /// the inverse square only, so give the scene's size).
 pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommands) {
+    let transform = light_transform(light);
     match *light {
-        Light::Point {
-            position,
-            intensity,
-        } => {
+        Light::Point { intensity, .. } => {
             let (colour, lumens) = point_light_lumens(intensity);
             commands.insert((
                 PointLight {
@@ -194,18 +192,16 @@ pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommand
                     shadow_maps_enabled: true,
                     ..default()
                 },
-                Transform::from_translation(vec3(position)),
+                transform,
             ));
         }
         Light::Spot {
-            position,
-            direction,
             intensity,
             inner_angle,
             outer_angle,
+            ..
         } => {
             let (colour, lumens) = point_light_lumens(intensity);
-            let rotation = look_rotation(direction, relight_core::Vec3::Y);
             commands.insert((
                 SpotLight {
                     color: linear(colour),
@@ -216,16 +212,11 @@ pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommand
                     shadow_maps_enabled: true,
                     ..default()
                 },
-                Transform::from_translation(vec3(position))
-                    .with_rotation(Quat::from_array(rotation.to_array())),
+                transform,
             ));
         }
-        Light::Directional {
-            direction,
-            irradiance,
-        } => {
+        Light::Directional { irradiance, .. } => {
             let (colour, lux) = directional_light_lux(irradiance);
-            let rotation = look_rotation(direction, relight_core::Vec3::Y);
             commands.insert((
                 DirectionalLight {
                     color: linear(colour),
@@ -233,9 +224,26 @@ pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommand
                     shadow_maps_enabled: true,
                     ..default()
                 },
-                Transform::from_rotation(Quat::from_array(rotation.to_array())),
+                transform,
             ));
         }
+    }
+}
+
+/// Where a relight light sits in Bevy: point lights at their position,
+/// spot and directional lights looking along their direction.
+pub fn light_transform(light: &Light) -> Transform {
+    let looking_along = |direction: relight_core::Vec3| {
+        Quat::from_array(look_rotation(direction, relight_core::Vec3::Y).to_array())
+    };
+    match *light {
+        Light::Point { position, .. } => Transform::from_translation(vec3(position)),
+        Light::Spot {
+            position,
+            direction,
+            ..
+        } => Transform::from_translation(vec3(position)).with_rotation(looking_along(direction)),
+        Light::Directional { direction, .. } => Transform::from_rotation(looking_along(direction)),
     }
 }
 

@@ -45,7 +45,7 @@ mod convert;
 mod runtime;
 pub mod snapshot;
 
-pub use convert::{bevy_light_to_relight, matching_exposure, relight_camera};
+pub use convert::{bevy_light_to_relight, light_transform, matching_exposure, relight_camera};
 pub use runtime::{
     read_moving_mesh_poses, relight_lights, RelightContext, RelightLight, RelightLights,
     RelightMovingMesh, RelightMovingMeshes, RelightPlugin, RelightScene, RelightStats,

@@ -13,7 +13,7 @@ use relight_technique::{ContextSettings, Frame, Progress, SceneContext, Techniqu
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{channel, Receiver, Sender, TryRecvError};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::Instant;
 
 /// Adds the systems that load, spawn and keep [`RelightScene`]s lit.
@@ -248,19 +248,75 @@ fn load(settings: &RelightScene, progress: &SharedProgress) -> Result<Loaded, St
     })
 }
 
-/// A frame's lights for the worker, with the buffers it fills (recycled
-/// when the render world hands none back, they are allocated anew).
-struct Job {
+/// What the GI depends on in one frame: lights, camera, moving meshes.
+#[derive(Clone, Debug, PartialEq)]
+struct SceneState {
     lights: Vec<Light>,
-    /// The technique's frame number: updates so far.
-    index: u64,
-    /// Bevy's frame when the lights were read.
-    frame: u64,
-    refresh_volume: bool,
     /// The active 3D camera, for view-dependent (glossy) light.
     camera: Option<relight_scene::Camera>,
     /// Where the moving meshes are (none in the scene: `None`).
     moving_mesh_poses: Option<Vec<relight_core::Affine3A>>,
+}
+
+/// A frame's state for the worker.
+struct Job {
+    state: SceneState,
+    /// Bevy's frame when it was read.
+    frame: u64,
+}
+
+/// Updates run after the scene last changed, so that techniques which
+/// feed last frame's light back (SRP, PIC) settle.
+const SETTLE_UPDATES: u32 = 8;
+
+/// Frames a scene must stay the same before settling updates start.
+const REST_FRAMES: u32 = 3;
+
+/// The newest job, which the worker takes as soon as it is free: a job
+/// the worker has not taken yet is replaced, never queued, so the worker
+/// never computes stale light and never idles while the scene moves (an
+/// idle gap before each update made it 15-30 % slower: `relight bench
+/// --pause-ms`).
+#[derive(Default)]
+struct Mailbox {
+    slot: Mutex<MailboxSlot>,
+    wake: Condvar,
+}
+
+#[derive(Default)]
+struct MailboxSlot {
+    job: Option<Job>,
+    closed: bool,
+}
+
+impl Mailbox {
+    fn post(&self, job: Job) {
+        self.slot.lock().unwrap().job = Some(job);
+        self.wake.notify_one();
+    }
+
+    fn is_empty(&self) -> bool {
+        self.slot.lock().unwrap().job.is_none()
+    }
+
+    /// The next job, waiting for one; `None` once closed.
+    fn take(&self) -> Option<Job> {
+        let mut slot = self.slot.lock().unwrap();
+        loop {
+            if let Some(job) = slot.job.take() {
+                return Some(job);
+            }
+            if slot.closed {
+                return None;
+            }
+            slot = self.wake.wait(slot).unwrap();
+        }
+    }
+
+    fn close(&self) {
+        self.slot.lock().unwrap().closed = true;
+        self.wake.notify_one();
+    }
 }
 
 struct Done {
@@ -273,15 +329,27 @@ struct Done {
 
 #[derive(Component)]
 struct Worker {
-    jobs: Sender<Job>,
+    mailbox: Arc<Mailbox>,
     done: Mutex<Receiver<Result<Done, String>>>,
-    in_flight: Option<u64>,
-    updates_sent: u64,
-    volume_every: u32,
+    /// What was last posted, and how many more updates to post while it
+    /// stays the same.
+    posted: Option<SceneState>,
+    settle: u32,
+    /// Frames the posted state has stayed the same.
+    unchanged_frames: u32,
+    /// Bevy's frame whose state the light on screen was computed from.
+    shown_frame: Option<u64>,
     lightmap: Handle<Image>,
     volume: Option<Handle<Image>>,
     /// Each moving mesh's last seen pose relative to the scene entity.
     moving_mesh_poses: Vec<relight_core::Affine3A>,
+}
+
+impl Drop for Worker {
+    /// The worker thread ends with its scene.
+    fn drop(&mut self) {
+        self.mailbox.close();
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -428,26 +496,25 @@ fn finish_loading(
         commands
             .entity(entity)
             .insert(RelightContext(context.clone()));
-        let (jobs, job_receiver) = channel();
+        let mailbox = Arc::new(Mailbox::default());
         let (done_sender, done) = channel();
         let context = context.clone();
-        std::thread::spawn(move || {
-            work(
-                context,
-                technique,
-                layout,
-                grid,
-                static_direct,
-                job_receiver,
-                done_sender,
-            )
-        });
-        commands.entity(entity).insert(Worker {
-            jobs,
-            done: Mutex::new(done),
-            in_flight: None,
-            updates_sent: 0,
+        let worker = Work {
+            context,
+            layout,
+            grid,
             volume_every: settings.volume_every.max(1),
+            static_direct,
+        };
+        let jobs = mailbox.clone();
+        std::thread::spawn(move || worker.run(technique, &jobs, done_sender));
+        commands.entity(entity).insert(Worker {
+            mailbox,
+            done: Mutex::new(done),
+            posted: None,
+            settle: 0,
+            unchanged_frames: 0,
+            shown_frame: None,
             lightmap,
             volume,
             moving_mesh_poses: moving.iter().map(|mesh| mesh.pose(0)).collect(),
@@ -467,75 +534,95 @@ fn static_direct_light(context: &SceneContext) -> Vec<Rgb> {
     light
 }
 
-/// The worker: owns the technique, turns each job's lights into lightmap
-/// (and volume) bytes. Ends when the main side drops its sender.
-fn work(
+/// What the worker thread needs besides the technique.
+struct Work {
     context: Arc<SceneContext>,
-    mut technique: Box<dyn Technique>,
     layout: LightmapLayout,
     grid: Option<VolumeGrid>,
+    /// Refresh the volume every this many updates.
+    volume_every: u32,
     static_direct: Option<Vec<Rgb>>,
-    jobs: Receiver<Job>,
-    done: Sender<Result<Done, String>>,
-) {
-    let mut volume_values = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
-    while let Ok(job) = jobs.recv() {
-        let result = technique
-            .update(&Frame {
-                lights: &job.lights,
-                index: job.index,
-                camera: job.camera.as_ref(),
-                moving_mesh_poses: job.moving_mesh_poses.as_deref(),
-            })
-            .map_err(|error| error.to_string())
-            .map(|()| {
-                let mut stages: Vec<(String, f64)> = technique
-                    .timings()
-                    .stages
-                    .iter()
-                    .map(|(name, duration)| (name.to_string(), duration.as_secs_f64() * 1e3))
-                    .collect();
-                let start = Instant::now();
-                let computed;
-                let values = match technique.receiver_irradiance() {
-                    Some(values) => values,
-                    None => {
-                        computed =
-                            relight_engine::receiver_irradiance(&context, technique.as_ref());
-                        &computed
+}
+
+impl Work {
+    /// Owns the technique, turns each job into lightmap (and volume)
+    /// bytes. Ends when the mailbox closes or the main side is gone.
+    fn run(
+        self,
+        mut technique: Box<dyn Technique>,
+        jobs: &Mailbox,
+        done: Sender<Result<Done, String>>,
+    ) {
+        let Work {
+            context,
+            layout,
+            grid,
+            volume_every,
+            static_direct,
+        } = self;
+        let mut volume_values = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
+        let mut updates = 0u64;
+        while let Some(job) = jobs.take() {
+            let refresh_volume = updates.is_multiple_of(u64::from(volume_every));
+            let index = updates;
+            updates += 1;
+            let result = technique
+                .update(&Frame {
+                    lights: &job.state.lights,
+                    index,
+                    camera: job.state.camera.as_ref(),
+                    moving_mesh_poses: job.state.moving_mesh_poses.as_deref(),
+                })
+                .map_err(|error| error.to_string())
+                .map(|()| {
+                    let mut stages: Vec<(String, f64)> = technique
+                        .timings()
+                        .stages
+                        .iter()
+                        .map(|(name, duration)| (name.to_string(), duration.as_secs_f64() * 1e3))
+                        .collect();
+                    let start = Instant::now();
+                    let computed;
+                    let values = match technique.receiver_irradiance() {
+                        Some(values) => values,
+                        None => {
+                            computed =
+                                relight_engine::receiver_irradiance(&context, technique.as_ref());
+                            &computed
+                        }
+                    };
+                    let mut lightmap = vec![0u8; layout.texel_count() * 8];
+                    layout.fill_rgba16f(values, static_direct.as_deref(), &mut lightmap);
+                    stages.push((
+                        "lightmap RGBA16F".into(),
+                        start.elapsed().as_secs_f64() * 1e3,
+                    ));
+                    let volume = match (&grid, refresh_volume) {
+                        (Some(grid), true) => {
+                            let start = Instant::now();
+                            fill_volume(grid, technique.as_ref(), &mut volume_values);
+                            let mut bytes = Vec::with_capacity(volume_values.len() * 8);
+                            relight_engine::TexelFormat::Rgba16Float
+                                .encode_into(&volume_values, &mut bytes);
+                            stages.push((
+                                "irradiance volume".into(),
+                                start.elapsed().as_secs_f64() * 1e3,
+                            ));
+                            Some(bytes)
+                        }
+                        _ => None,
+                    };
+                    Done {
+                        frame: job.frame,
+                        lightmap,
+                        volume,
+                        stages,
+                        memory_bytes: technique.memory().iter().map(|entry| entry.bytes).sum(),
                     }
-                };
-                let mut lightmap = vec![0u8; layout.texel_count() * 8];
-                layout.fill_rgba16f(values, static_direct.as_deref(), &mut lightmap);
-                stages.push((
-                    "lightmap RGBA16F".into(),
-                    start.elapsed().as_secs_f64() * 1e3,
-                ));
-                let volume = match (&grid, job.refresh_volume) {
-                    (Some(grid), true) => {
-                        let start = Instant::now();
-                        fill_volume(grid, technique.as_ref(), &mut volume_values);
-                        let mut bytes = Vec::with_capacity(volume_values.len() * 8);
-                        relight_engine::TexelFormat::Rgba16Float
-                            .encode_into(&volume_values, &mut bytes);
-                        stages.push((
-                            "irradiance volume".into(),
-                            start.elapsed().as_secs_f64() * 1e3,
-                        ));
-                        Some(bytes)
-                    }
-                    _ => None,
-                };
-                Done {
-                    frame: job.frame,
-                    lightmap,
-                    volume,
-                    stages,
-                    memory_bytes: technique.memory().iter().map(|entry| entry.bytes).sum(),
-                }
-            });
-        if done.send(result).is_err() {
-            return;
+                });
+            if done.send(result).is_err() {
+                return;
+            }
         }
     }
 }
@@ -616,6 +703,7 @@ fn exchange_with_worker(
 ) {
     for (entity, root, mut worker, mut stats, mut status) in &mut scenes {
         let start = Instant::now();
+        let now = u64::from(frame_count.0);
         let finished = worker.done.lock().unwrap().try_recv();
         match finished {
             Ok(Ok(done)) => {
@@ -630,51 +718,50 @@ fn exchange_with_worker(
                 stats.updates += 1;
                 stats.stages = done.stages;
                 stats.memory_bytes = done.memory_bytes;
-                worker.in_flight = None;
-                stats.gi_age_frames = u64::from(frame_count.0).saturating_sub(done.frame);
+                worker.shown_frame = Some(done.frame);
             }
             Ok(Err(message)) => {
                 fail(&mut status, message);
-                worker.in_flight = None;
                 continue;
             }
             Err(TryRecvError::Disconnected) => {
                 fail(&mut status, "the relight worker stopped".into());
-                worker.in_flight = None;
                 continue;
             }
-            Err(TryRecvError::Empty) => {
-                if let Some(sent) = worker.in_flight {
-                    stats.gi_age_frames = u64::from(frame_count.0).saturating_sub(sent);
-                }
-            }
+            Err(TryRecvError::Empty) => {}
         }
-        if worker.in_flight.is_none() && *status == RelightStatus::Running {
+        if let Some(shown) = worker.shown_frame {
+            stats.gi_age_frames = now.saturating_sub(shown);
+        }
+        if *status == RelightStatus::Running {
             // relight's scene lives in the scene entity's space.
-            let current = relight_lights(&lights, root);
             read_moving_mesh_poses(&moving_meshes, entity, root, &mut worker.moving_mesh_poses);
-            let refresh_volume = worker.volume.is_some()
-                && worker.updates_sent % u64::from(worker.volume_every) == 0;
-            let frame = u64::from(frame_count.0);
-            let camera = cameras
-                .iter()
-                .filter(|(camera, _, _)| camera.is_active)
-                .max_by_key(|(camera, _, _)| camera.order)
-                .map(|(_, transform, projection)| {
-                    crate::convert::relight_camera(transform, projection)
-                });
-            let job = Job {
-                lights: current,
-                index: worker.updates_sent,
-                frame,
-                refresh_volume,
-                camera,
+            let state = SceneState {
+                lights: relight_lights(&lights, root),
+                camera: cameras
+                    .iter()
+                    .filter(|(camera, _, _)| camera.is_active)
+                    .max_by_key(|(camera, _, _)| camera.order)
+                    .map(|(_, transform, projection)| {
+                        crate::convert::relight_camera(transform, projection)
+                    }),
                 moving_mesh_poses: (!worker.moving_mesh_poses.is_empty())
                     .then(|| worker.moving_mesh_poses.clone()),
             };
-            if worker.jobs.send(job).is_ok() {
-                worker.in_flight = Some(frame);
-                worker.updates_sent += 1;
+            // A changed scene replaces whatever job is waiting. One that
+            // has rested a few frames (so the worker is not kept from a
+            // scene about to change) is posted again, once the worker has
+            // taken the last job, until the feedback techniques settle.
+            if worker.posted.as_ref() != Some(&state) {
+                worker.posted = Some(state.clone());
+                worker.settle = SETTLE_UPDATES;
+                worker.unchanged_frames = 0;
+                worker.mailbox.post(Job { state, frame: now });
+            } else if worker.unchanged_frames < REST_FRAMES {
+                worker.unchanged_frames += 1;
+            } else if worker.settle > 0 && worker.mailbox.is_empty() {
+                worker.settle -= 1;
+                worker.mailbox.post(Job { state, frame: now });
             }
         }
         stats.bridge_ms = start.elapsed().as_secs_f64() * 1e3;

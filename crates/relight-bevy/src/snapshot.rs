@@ -6,7 +6,7 @@
 //! Bevy's screenshot. On a machine without a GPU it runs on Mesa's software
 //! Vulkan (lavapipe).
 
-use crate::runtime::{RelightLight, RelightScene, RelightStats, RelightStatus};
+use crate::runtime::{RelightContext, RelightLight, RelightScene, RelightStats, RelightStatus};
 use crate::{convert, RelightPlugin};
 use bevy::camera::RenderTarget;
 use bevy::core_pipeline::tonemapping::Tonemapping;
@@ -238,8 +238,9 @@ pub struct BridgeRun {
 
 /// Runs `scene` headless (no camera: what the bridge costs does not
 /// depend on what is drawn) until `gi_updates` updates are shown after
-/// `warm_up` of them, moving its lights a little every frame so that each
-/// update has new lights to read. Frames start every `frame_interval`
+/// `warm_up` of them, moving its lights every frame along `relight
+/// bench`'s orbit (a turn every `2 gi_updates` frames) so that each update
+/// has new lights in the places `relight bench` puts them. Frames start every `frame_interval`
 /// (an app synchronised to its display, whose main thread waits between
 /// frames); `Duration::ZERO` runs them back to back.
 pub fn run_bridge(
@@ -255,6 +256,8 @@ pub fn run_bridge(
     let mut run = BridgeRun::default();
     let mut last_updates = 0;
     let mut next_frame = Instant::now();
+    let mut orbit_centre = None;
+    let mut frames_moved = 0u32;
     loop {
         if started.elapsed() > timeout {
             return Err(format!(
@@ -269,7 +272,9 @@ pub fn run_bridge(
         }
         next_frame = Instant::now() + frame_interval;
         let frame_start = Instant::now();
-        update_and_wait(&mut app)?;
+        // No wait for the GPU, as in an app: the frame's time is Bevy's
+        // own work and submission, not the software rasteriser's.
+        app.update();
         let frame_ms = frame_start.elapsed().as_secs_f64() * 1e3;
         let world = app.world_mut();
         match world.get::<RelightStatus>(scene_entity).cloned() {
@@ -280,14 +285,31 @@ pub fn run_bridge(
                 continue;
             }
         }
-        let mut lights = world.query_filtered::<&mut Transform, With<RelightLight>>();
-        for mut transform in lights.iter_mut(world) {
-            transform.rotate_around(Vec3::ZERO, Quat::from_rotation_y(0.002));
-        }
         let stats = world
             .get::<RelightStats>(scene_entity)
             .cloned()
             .unwrap_or_default();
+        // The lights move every frame, as an app moves them, along
+        // `relight bench`'s orbit: a turn over about as many updates as
+        // are measured (an update takes about two frames), so both time
+        // lights in the same places.
+        if let Some(context) = world.get::<RelightContext>(scene_entity).cloned() {
+            let scene = &context.0.scene;
+            let centre = *orbit_centre.get_or_insert_with(|| {
+                let (lo, hi) = scene.mesh.bounds();
+                (lo + hi) * 0.5
+            });
+            let period = u32::try_from(gi_updates.saturating_mul(2)).unwrap_or(u32::MAX);
+            frames_moved += 1;
+            let step = frames_moved;
+            let orbiting = relight_engine::orbit(&scene.lights, centre, step, period);
+            let mut lights = world.query::<(&RelightLight, &mut Transform)>();
+            for (marker, mut transform) in lights.iter_mut(world) {
+                if let Some(light) = orbiting.get(marker.0) {
+                    *transform = crate::convert::light_transform(light);
+                }
+            }
+        }
         if stats.updates <= warm_up {
             last_updates = stats.updates;
             continue;

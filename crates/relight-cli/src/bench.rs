@@ -2,7 +2,7 @@
 //! `relight bench-rays`: BVH throughput.
 
 use anyhow::Result;
-use glam::{Quat, Vec2, Vec3};
+use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::Rgb;
 use relight_scene::Light;
@@ -48,18 +48,6 @@ pub struct BenchReport {
     pub irradiance_volume: Option<StageReport>,
     pub memory: Vec<(String, usize)>,
     pub memory_total_bytes: usize,
-}
-
-/// The lights of frame `index` of `frames`: point and spot lights circle the
-/// vertical axis through the scene centre once over the run, directional
-/// lights turn their azimuth likewise.
-pub fn orbit(lights: &[Light], centre: Vec3, index: u32, frames: u32) -> Vec<Light> {
-    let angle = std::f32::consts::TAU * index as f32 / frames.max(1) as f32;
-    let rotation = Quat::from_rotation_y(angle);
-    lights
-        .iter()
-        .map(|light| light.rotated_about(centre, rotation))
-        .collect()
 }
 
 fn percentile(sorted: &[f64], fraction: f64) -> f64 {
@@ -137,17 +125,33 @@ fn shade(technique: &dyn Technique, points: &[ShadedPoint], out: &mut [Rgb]) {
     });
 }
 
-/// `shading_resolution` picks the shading stage's image size (`None`: the
-/// scene camera's; a zero side: no shading stage); `volume_cells` the
-/// irradiance volume's voxels along the scene's longest side (0: none).
+/// What `relight bench` runs.
+#[derive(Clone, Copy, Debug)]
+pub struct BenchSettings {
+    pub frames: u32,
+    /// The shading stage's image size (`None`: the scene camera's; a zero
+    /// side: no shading stage).
+    pub shading_resolution: Option<[u32; 2]>,
+    /// The irradiance volume's voxels along the scene's longest side (0:
+    /// none).
+    pub volume_cells: u32,
+    /// Idle time before each frame (an engine's worker waiting for the
+    /// next frame's lights).
+    pub pause: std::time::Duration,
+}
+
 pub fn run(
     context: &SceneContext,
     technique: &mut dyn Technique,
-    frames: u32,
-    shading_resolution: Option<[u32; 2]>,
-    volume_cells: u32,
+    settings: BenchSettings,
     progress: &dyn Progress,
 ) -> Result<BenchReport> {
+    let BenchSettings {
+        frames,
+        shading_resolution,
+        volume_cells,
+        pause,
+    } = settings;
     let frames = frames.max(1);
     let resolution = shading_resolution.unwrap_or(context.scene.camera.resolution);
     let points = if resolution.contains(&0) {
@@ -173,7 +177,10 @@ pub fn run(
     let mut volume_samples = Vec::new();
     progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
-        let lights = orbit(base, centre, index, frames);
+        let lights = relight_engine::orbit(base, centre, index, frames);
+        if !pause.is_zero() {
+            std::thread::sleep(pause);
+        }
         technique.update(&Frame {
             lights: &lights,
             index: index as u64,

@@ -205,6 +205,11 @@ enum Command {
         /// as one refresh a frame; 0: no volume stage.
         #[arg(long, default_value_t = 16)]
         volume_cells: u32,
+        /// Wait this long between frames, as an engine's GI worker waits
+        /// for the next frame's lights (0: frames back to back). Shows
+        /// what an idle gap costs the next update (caches, clock speed).
+        #[arg(long, default_value_t = 0.0)]
+        pause_ms: f64,
         /// Also write the report as JSON.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -700,16 +705,23 @@ fn run(cli: Cli) -> Result<()> {
             frames,
             shading_resolution,
             volume_cells,
+            pause_ms,
             json,
         } => {
+            if !pause_ms.is_finite() || !(0.0..=60_000.0).contains(&pause_ms) {
+                anyhow::bail!("--pause-ms must be between 0 and 60000, got {pause_ms}");
+            }
             let context = load_context(&scene, &options, quiet)?;
             let mut instance = create_technique(&context, &technique, quiet)?;
             let report = bench::run(
                 &context,
                 instance.as_mut(),
-                frames,
-                shading_resolution,
-                volume_cells,
+                bench::BenchSettings {
+                    frames,
+                    shading_resolution,
+                    volume_cells,
+                    pause: std::time::Duration::from_secs_f64(pause_ms / 1e3),
+                },
                 &Bars::new(quiet),
             )?;
             say!("{report}");

@@ -22,6 +22,22 @@ mod lightmap;
 mod primitives;
 pub mod techniques;
 mod units;
+
+use glam::{Quat, Vec3};
+use relight_scene::Light;
+
+/// The lights of frame `index` of `frames` in `relight bench` (and the
+/// Bevy bridge's measurement, so both time the same work): point and spot
+/// lights circle the vertical axis through `centre` once over the run,
+/// directional lights turn their azimuth likewise.
+pub fn orbit(lights: &[Light], centre: Vec3, index: u32, frames: u32) -> Vec<Light> {
+    let angle = std::f32::consts::TAU * index as f32 / frames.max(1) as f32;
+    let rotation = Quat::from_rotation_y(angle);
+    lights
+        .iter()
+        .map(|light| light.rotated_about(centre, rotation))
+        .collect()
+}
 pub mod volume;
 
 pub use export::{export_scene, ExportError, ExportSettings, ExportSummary};
