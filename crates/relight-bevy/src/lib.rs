@@ -26,14 +26,18 @@
 //! maps and [`RelightLight`] (Bevy draws direct light), the scene file's
 //! moving meshes with [`RelightMovingMesh`], and an `IrradianceVolume`
 //! over the scene for them and the app's own dynamic objects. A worker thread
-//! then owns the technique: each frame the main thread reads the Bevy
-//! lights' transforms, colours and intensities and the moving meshes'
-//! transforms and, when the worker is free, hands them over with the
-//! active camera; the worker updates the technique and fills the
-//! lightmap's RGBA16F bytes (and, every `volume_every` updates, the
+//! then owns the technique: each frame, after Bevy has propagated
+//! transforms, the main thread reads the Bevy lights' transforms, colours
+//! and intensities, the moving meshes' transforms and the active camera,
+//! and posts them to a one-slot mailbox when they changed (a state the
+//! worker has not taken is replaced, never queued). The worker takes the
+//! newest state as soon as it is free, updates the technique and fills
+//! the lightmap's RGBA16F bytes (and, every `volume_every` updates, the
 //! volume's), which the main thread moves into the images: a frame never
 //! waits for GI, and [`RelightStats::gi_age_frames`] says how old the
-//! light on screen is.
+//! light on screen is. On a software rasteriser the plugin clusters
+//! lights on the CPU (Bevy's GPU clustering there leaves the irradiance
+//! volume out).
 //!
 //! Units: texels are E/pi in cd/m^2 at [`relight_engine::LUMENS_PER_WATT`];
 //! Bevy lights are read back through the same factor. Static emitters
