@@ -31,9 +31,10 @@ use relight_bevy::{
     RelightStats, RelightStatus,
 };
 use relight_scene::Light;
+use relight_technique::SceneContext;
 use std::path::PathBuf;
 use std::sync::mpsc::{channel, Receiver};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 #[derive(Parser, Resource, Clone)]
 struct Args {
@@ -359,8 +360,9 @@ const REFERENCE_REST_FRAMES: u32 = 5;
 #[derive(Component)]
 struct ReferenceOverlay;
 
-/// A traced pass: the view generation it was traced for, and its pixels.
-type Pass = (u64, Vec<relight_core::Rgb>);
+/// A traced pass: the view generation it was traced for, its pixels, and
+/// the scene it traced.
+type Pass = (u64, Vec<relight_core::Rgb>, Arc<SceneContext>);
 
 /// The progressive reference: the sum of the passes so far for the view
 /// and lights they were traced with.
@@ -378,6 +380,11 @@ struct Reference {
     /// dropped.
     generation: u64,
     image: Option<Handle<Image>>,
+    /// The scene's moving meshes, read once per loaded scene.
+    moving_meshes: Option<(Arc<SceneContext>, Arc<Vec<relight_engine::MovingMesh>>)>,
+    /// The scene traced for this view, with the moving meshes in place
+    /// (its BVH built by the first pass, reused by the rest).
+    traced: Option<Arc<SceneContext>>,
 }
 
 /// R toggles relight's path-traced reference of the current view: a pass
@@ -427,15 +434,17 @@ fn reference_view(
         reference.sum = vec![[0.0; 3]; (size.0 * size.1) as usize];
         reference.generation += 1;
         reference.in_flight = None;
+        reference.traced = None;
         *visibility = Visibility::Hidden;
         return;
     }
     reference.resting_frames += 1;
     if let Some(receiver) = &reference.in_flight {
         let finished = receiver.lock().unwrap().try_recv();
-        if let Ok((generation, pixels)) = finished {
+        if let Ok((generation, pixels, traced)) = finished {
             reference.in_flight = None;
             if generation == reference.generation {
+                reference.traced = Some(traced);
                 for (sum, pixel) in reference.sum.iter_mut().zip(&pixels) {
                     for channel in 0..3 {
                         sum[channel] += f64::from(pixel[channel]);
@@ -459,6 +468,16 @@ fn reference_view(
     if reference.in_flight.is_none() && reference.resting_frames >= REFERENCE_REST_FRAMES {
         let (sender, receiver) = channel();
         let context = context.0.clone();
+        let meshes = match &reference.moving_meshes {
+            Some((loaded, meshes)) if Arc::ptr_eq(loaded, &context) => meshes.clone(),
+            _ => {
+                let meshes =
+                    Arc::new(relight_engine::moving_meshes(&context.scene).unwrap_or_default());
+                reference.moving_meshes = Some((context.clone(), meshes.clone()));
+                meshes
+            }
+        };
+        let traced = reference.traced.clone();
         let (_, lights, poses) = reference.view.clone().unwrap();
         let mut camera = relight_bevy::relight_camera(global, projection);
         camera.resolution = [reference.size.0, reference.size.1];
@@ -469,20 +488,22 @@ fn reference_view(
         };
         std::thread::spawn(move || {
             // The moving meshes where they are now, in the traced scene.
-            let meshes = relight_engine::moving_meshes(&context.scene).unwrap_or_default();
-            let frame_context = (!meshes.is_empty() && meshes.len() == poses.len()).then(|| {
+            let traced = traced.unwrap_or_else(|| {
+                if meshes.is_empty() || meshes.len() != poses.len() {
+                    return context;
+                }
                 let world = relight_engine::MovingWorld::place(&meshes, &poses);
-                context.with_frame_geometry(world.merged_into(&context.scene))
+                Arc::new(context.with_frame_geometry(world.merged_into(&context.scene)))
             });
             let renders = relight_render::render::render_reference_view(
-                frame_context.as_ref().unwrap_or(&context),
+                &traced,
                 &lights,
                 &camera,
                 settings,
                 REFERENCE_SPP,
                 &relight_technique::NoProgress,
             );
-            let _ = sender.send((generation, renders.full.pixels));
+            let _ = sender.send((generation, renders.full.pixels, traced));
         });
         reference.in_flight = Some(Mutex::new(receiver));
     }
