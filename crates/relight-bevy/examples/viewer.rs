@@ -341,14 +341,8 @@ fn animate_moving_meshes(
         let Some(script) = scripts.get(marker.index) else {
             continue;
         };
-        let angles = (script.rotation + script.spin * frame)
-            .to_array()
-            .map(f32::to_radians);
-        let translation = script.translation + script.velocity * frame;
-        *transform =
-            Transform::from_translation(Vec3::from_array(translation.to_array())).with_rotation(
-                Quat::from_euler(EulerRot::XYZ, angles[0], angles[1], angles[2]),
-            );
+        let pose = relight_core::Mat4::from(script.pose_between_frames(frame));
+        *transform = Transform::from_matrix(Mat4::from_cols_array(&pose.to_cols_array()));
     }
 }
 

@@ -44,7 +44,12 @@ pub struct DynamicMesh {
 impl DynamicMesh {
     /// Mesh space to world space at `frame`.
     pub fn pose(&self, frame: u64) -> Affine3A {
-        let frame = frame as f32;
+        self.pose_between_frames(frame as f32)
+    }
+
+    /// [`Self::pose`] at a fractional frame (an app animating the script
+    /// smoothly between frames).
+    pub fn pose_between_frames(&self, frame: f32) -> Affine3A {
         let angles = (self.rotation + self.spin * frame) * (std::f32::consts::PI / 180.0);
         let rotation = Quat::from_euler(EulerRot::XYZ, angles.x, angles.y, angles.z);
         Affine3A::from_rotation_translation(rotation, self.translation + self.velocity * frame)
