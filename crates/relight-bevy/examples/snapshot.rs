@@ -2,7 +2,7 @@
 //! relight's GI in Bevy's lightmap: EXR (linear, no tone mapping) or PNG.
 //!
 //! cargo run --release -p relight-bevy --example snapshot -- SCENE.toml \
-//!     --technique T [--bake F] [--indirect-only] [--frames N] -o OUT.exr
+//!     --technique T [--bake F] [--indirect-only] [--adopt] [--frames N] -o OUT.exr
 
 use clap::Parser;
 use relight_bevy::snapshot::{render_snapshot, SnapshotSettings};
@@ -26,6 +26,10 @@ struct Args {
     /// only: the image to compare with `relight render --indirect-only`.
     #[arg(long)]
     indirect_only: bool,
+    /// Bevy loads the scene's glTF itself and relight adopts it
+    /// (`RelightScene::adopt_gltf`) instead of spawning its own copy.
+    #[arg(long)]
+    adopt: bool,
     /// GI updates before the picture.
     #[arg(long, default_value_t = 5)]
     frames: u64,
@@ -38,6 +42,7 @@ fn main() -> ExitCode {
     let mut scene = RelightScene::new(&args.scene).technique(&args.technique);
     scene.bake = args.bake.clone();
     scene.indirect_only = args.indirect_only;
+    scene.adopt = args.adopt;
     for pair in &args.set {
         let Some((key, value)) = pair.split_once('=') else {
             eprintln!("error: --set {pair}: expected KEY=VALUE");

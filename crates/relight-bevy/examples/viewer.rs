@@ -2,7 +2,11 @@
 //! maps, relight adds indirect light as the lights move.
 //!
 //! cargo run --release -p relight-bevy --example viewer -- SCENE.toml \
-//!     [--technique T] [--bake F]
+//!     [--technique T] [--bake F] [--adopt]
+//!
+//! With --adopt, Bevy's glTF loader loads the scene's glTF (the file, or
+//! the scene file's mesh) with its own materials and textures, and the
+//! plugin adopts it (`RelightScene::adopt_gltf`).
 //!
 //! Keys: WASD, Q/E and the mouse (left button held) fly the camera;
 //! arrows move the point and spot lights around the scene's centre (left,
@@ -56,6 +60,9 @@ struct Args {
     /// for --screenshot-after passes of it.
     #[arg(long)]
     reference: bool,
+    /// Bevy loads the scene's glTF itself and relight adopts it.
+    #[arg(long)]
+    adopt: bool,
 }
 
 #[derive(Component)]
@@ -68,6 +75,18 @@ struct ViewerCamera {
 
 fn main() -> AppExit {
     let args = Args::parse();
+    // Adoption: Bevy's asset server reads the glTF from its folder.
+    let assets = match args.adopt.then(|| relight_bevy::gltf_to_adopt(&args.scene)) {
+        Some(Ok(gltf)) => AssetPlugin {
+            file_path: gltf.parent().unwrap_or(&gltf).display().to_string(),
+            ..default()
+        },
+        Some(Err(message)) => {
+            eprintln!("error: {message}");
+            return AppExit::error();
+        }
+        None => AssetPlugin::default(),
+    };
     let (width, height) = args
         .size
         .split_once('x')
@@ -75,7 +94,7 @@ fn main() -> AppExit {
         .unwrap_or((1280, 720));
     App::new()
         .add_plugins((
-            DefaultPlugins.set(WindowPlugin {
+            DefaultPlugins.set(assets).set(WindowPlugin {
                 primary_window: Some(Window {
                     title: "relight viewer".into(),
                     resolution: (width, height).into(),
@@ -109,16 +128,31 @@ fn main() -> AppExit {
         .run()
 }
 
-fn scene_of(args: &Args, technique: &str) -> RelightScene {
+/// Spawns the scene with `technique`, and with --adopt the glTF Bevy
+/// loads for it.
+fn spawn_scene(commands: &mut Commands, assets: &AssetServer, args: &Args, technique: &str) {
     let mut scene = RelightScene::new(&args.scene).technique(technique);
     if technique == args.technique {
         scene.bake = args.bake.clone();
     }
-    scene
+    let gltf = args
+        .adopt
+        .then(|| relight_bevy::gltf_to_adopt(&args.scene).ok())
+        .flatten();
+    match gltf.as_ref().and_then(|gltf| gltf.file_name()) {
+        Some(file) => commands.spawn((
+            scene.adopt_gltf(),
+            WorldAssetRoot(
+                assets
+                    .load(GltfAssetLabel::Scene(0).from_asset(file.to_string_lossy().into_owned())),
+            ),
+        )),
+        None => commands.spawn(scene),
+    };
 }
 
-fn setup(mut commands: Commands, args: Res<Args>) {
-    commands.spawn(scene_of(&args, &args.technique));
+fn setup(mut commands: Commands, args: Res<Args>, assets: Res<AssetServer>) {
+    spawn_scene(&mut commands, &assets, &args, &args.technique);
     commands.spawn((
         ReferenceOverlay,
         ImageNode::default(),
@@ -229,6 +263,7 @@ fn switch_technique(
     mut commands: Commands,
     keys: Res<ButtonInput<KeyCode>>,
     args: Res<Args>,
+    assets: Res<AssetServer>,
     scenes: Query<(Entity, &RelightScene)>,
 ) {
     let choice = [
@@ -249,7 +284,7 @@ fn switch_technique(
         }
         commands.entity(entity).despawn();
     }
-    commands.spawn(scene_of(&args, technique));
+    spawn_scene(&mut commands, &assets, &args, technique);
 }
 
 fn update_panel(

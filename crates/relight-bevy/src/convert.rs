@@ -99,21 +99,31 @@ pub(crate) fn material(
     material: &relight_scene::Material,
     texture: Option<Handle<Image>>,
 ) -> StandardMaterial {
-    let lambertian = material.phong_exponent <= 1.0;
-    StandardMaterial {
+    let mut bevy_material = StandardMaterial {
         base_color: linear(material.albedo),
         base_color_texture: texture,
-        metallic: 0.0,
-        perceptual_roughness: if lambertian {
-            0.5
-        } else {
-            roughness_of(material.phong_exponent)
-        },
-        reflectance: if lambertian { 0.0 } else { 0.5 },
         emissive: LinearRgba::from(linear(material.emission * LUMENS_PER_WATT)),
         lightmap_exposure: 1.0,
         ..default()
-    }
+    };
+    relight_shading(&mut bevy_material, material);
+    bevy_material
+}
+
+/// The `StandardMaterial` parameters of relight's lobe (see [`material`]);
+/// colours, textures and emission stay.
+pub(crate) fn relight_shading(
+    bevy_material: &mut StandardMaterial,
+    material: &relight_scene::Material,
+) {
+    let lambertian = material.phong_exponent <= 1.0;
+    bevy_material.metallic = 0.0;
+    bevy_material.perceptual_roughness = if lambertian {
+        0.5
+    } else {
+        roughness_of(material.phong_exponent)
+    };
+    bevy_material.reflectance = if lambertian { 0.0 } else { 0.5 };
 }
 
 /// An albedo texture as sRGB bytes with repeat addressing.
@@ -176,24 +186,28 @@ pub(crate) fn float_image(width: u32, height: u32, depth: u32, data: Vec<u8>) ->
     image
 }
 
-/// A relight light as a Bevy light bundle with shadow maps; `range` is
-/// where Bevy may cut point and spot lights off (relight's fall off with
-/// the inverse square only, so give the scene's size).
+/// A relight light as a Bevy light bundle with shadow maps, placed by
+/// [`light_transform`]; `range` is where Bevy may cut point and spot
+/// lights off (relight's fall off with the inverse square only, so give
+/// the scene's size).
 pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommands) {
-    let transform = light_transform(light);
+    commands.insert(light_transform(light));
+    insert_light_values(light, range, commands);
+}
+
+/// A relight light's Bevy light component (colour, intensity, cone,
+/// shadow maps), for an entity already in its place.
+pub(crate) fn insert_light_values(light: &Light, range: f32, commands: &mut EntityCommands) {
     match *light {
         Light::Point { intensity, .. } => {
             let (colour, lumens) = point_light_lumens(intensity);
-            commands.insert((
-                PointLight {
-                    color: linear(colour),
-                    intensity: lumens,
-                    range,
-                    shadow_maps_enabled: true,
-                    ..default()
-                },
-                transform,
-            ));
+            commands.insert(PointLight {
+                color: linear(colour),
+                intensity: lumens,
+                range,
+                shadow_maps_enabled: true,
+                ..default()
+            });
         }
         Light::Spot {
             intensity,
@@ -202,30 +216,24 @@ pub(crate) fn bevy_light(light: &Light, range: f32, commands: &mut EntityCommand
             ..
         } => {
             let (colour, lumens) = point_light_lumens(intensity);
-            commands.insert((
-                SpotLight {
-                    color: linear(colour),
-                    intensity: lumens,
-                    range,
-                    inner_angle,
-                    outer_angle,
-                    shadow_maps_enabled: true,
-                    ..default()
-                },
-                transform,
-            ));
+            commands.insert(SpotLight {
+                color: linear(colour),
+                intensity: lumens,
+                range,
+                inner_angle,
+                outer_angle,
+                shadow_maps_enabled: true,
+                ..default()
+            });
         }
         Light::Directional { irradiance, .. } => {
             let (colour, lux) = directional_light_lux(irradiance);
-            commands.insert((
-                DirectionalLight {
-                    color: linear(colour),
-                    illuminance: lux,
-                    shadow_maps_enabled: true,
-                    ..default()
-                },
-                transform,
-            ));
+            commands.insert(DirectionalLight {
+                color: linear(colour),
+                illuminance: lux,
+                shadow_maps_enabled: true,
+                ..default()
+            });
         }
     }
 }

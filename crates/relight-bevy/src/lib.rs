@@ -39,19 +39,30 @@
 //! lights on the CPU (Bevy's GPU clustering there leaves the irradiance
 //! volume out).
 //!
+//! Adoption: an app that loads its glTF itself puts the `RelightScene`
+//! (with [`RelightScene::adopt_gltf`]) on the entity with the
+//! `WorldAssetRoot`. The loading thread loads relight's copy of the same
+//! file; once Bevy has spawned the scene, the plugin gives each mesh
+//! entity a copy of its mesh with relight's atlas as UV 1 and the
+//! `Lightmap` (finding relight's triangles by the mesh handle's
+//! `Mesh{m}/Primitive{p}` label and the entity's transform, and checking
+//! every corner), turns the glTF's lights into [`RelightLight`]s, and
+//! starts as above without spawning static meshes.
+//!
 //! Units: texels are E/pi in cd/m^2 at [`relight_engine::LUMENS_PER_WATT`];
 //! Bevy lights are read back through the same factor. Static emitters
 //! (emissive triangles, the environment) are not Bevy lights, so their
 //! direct light goes into the lightmap with the indirect light (unless
 //! [`RelightScene::indirect_only`]).
 
+mod adopt;
 mod convert;
 mod runtime;
 pub mod snapshot;
 
 pub use convert::{bevy_light_to_relight, light_transform, matching_exposure, relight_camera};
 pub use runtime::{
-    read_moving_mesh_poses, relight_lights, RelightContext, RelightLight, RelightLights,
-    RelightMovingMesh, RelightMovingMeshes, RelightPlugin, RelightScene, RelightStats,
-    RelightStatus,
+    gltf_to_adopt, read_moving_mesh_poses, relight_lights, RelightContext, RelightLight,
+    RelightLights, RelightMovingMesh, RelightMovingMeshes, RelightPlugin, RelightScene,
+    RelightStats, RelightStatus,
 };

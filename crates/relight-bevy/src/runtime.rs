@@ -25,11 +25,14 @@ impl Plugin for RelightPlugin {
         // transforms, so it runs after this frame's propagation: before
         // it, what the app moved in Update (and what loading just
         // spawned, still at the origin) has not reached them.
-        app.add_systems(Update, (start_loading, finish_loading).chain())
-            .add_systems(
-                PostUpdate,
-                exchange_with_worker.after(bevy::transform::TransformSystems::Propagate),
-            );
+        app.add_systems(
+            Update,
+            (start_loading, finish_loading, adopt_gltf_scenes).chain(),
+        )
+        .add_systems(
+            PostUpdate,
+            exchange_with_worker.after(bevy::transform::TransformSystems::Propagate),
+        );
     }
 
     /// On a software rasteriser (Mesa's lavapipe: CI, machines without a
@@ -79,6 +82,18 @@ pub struct RelightScene {
     /// emitters' direct light (for comparisons with relight's
     /// indirect-only renders).
     pub indirect_only: bool,
+    /// Light the glTF scene Bevy spawns under this entity's
+    /// `WorldAssetRoot` instead of spawning relight's copy: see
+    /// [`RelightScene::adopt_gltf`].
+    pub adopt: bool,
+    /// Give the adopted glTF's materials relight's shading (its Lambertian
+    /// or Blinn-Phong lobe as `StandardMaterial` parameters, as for the
+    /// meshes relight spawns), keeping their colours and textures: for
+    /// comparisons with relight's renders. Off, an adopted scene keeps
+    /// the app's look: Bevy's glTF materials have a specular lobe and
+    /// Burley diffuse, which relight's lightmap does not model (its
+    /// indirect light is the same either way; see the snapshot test).
+    pub relight_shading: bool,
 }
 
 impl RelightScene {
@@ -92,7 +107,27 @@ impl RelightScene {
             volume_every: 10,
             spawn_lights: true,
             indirect_only: false,
+            adopt: false,
+            relight_shading: false,
         }
+    }
+
+    /// Adopt the glTF scene the app has Bevy load on this same entity
+    /// (`WorldAssetRoot(assets.load(GltfAssetLabel::Scene(0).from_asset(..)))`)
+    /// instead of spawning relight's copy of `path`, which must be that
+    /// glTF file or a scene file whose mesh it is. Once Bevy has spawned
+    /// it, each of its mesh entities keeps its material and components and
+    /// gets relight's atlas as UV 1 (a copy of its mesh with one vertex a
+    /// triangle corner) and the [`Lightmap`]; each of its lights that is
+    /// one of relight's becomes a [`RelightLight`] with relight's colour
+    /// (linear, as glTF defines it; Bevy's loader reads it as sRGB) and
+    /// shadow maps. Lights only the scene file has are spawned. A mesh that
+    /// is not relight's copy of the file is a [`RelightStatus::Failed`]
+    /// naming it. The glTF must be loaded without coordinate conversion
+    /// and with its meshes kept in the main world (Bevy's defaults).
+    pub fn adopt_gltf(mut self) -> Self {
+        self.adopt = true;
+        self
     }
 
     pub fn technique(mut self, name: impl Into<String>) -> Self {
@@ -109,6 +144,30 @@ impl RelightScene {
         self.bake = Some(path.into());
         self
     }
+}
+
+/// The glTF file an app loads for [`RelightScene::adopt_gltf`] with the
+/// scene at `path` (the file itself, or a scene file's mesh), as an
+/// absolute path: its folder is where Bevy's `AssetPlugin` must look.
+pub fn gltf_to_adopt(path: &std::path::Path) -> Result<std::path::PathBuf, String> {
+    let mesh = if relight_scene::is_mesh_file(path) {
+        path.to_path_buf()
+    } else {
+        relight_scene::parse_scene_file(path)
+            .map_err(|error| error.to_string())?
+            .mesh
+    };
+    let is_gltf = mesh.extension().is_some_and(|extension| {
+        extension.eq_ignore_ascii_case("gltf") || extension.eq_ignore_ascii_case("glb")
+    });
+    if !is_gltf {
+        return Err(format!(
+            "{}: adoption needs a glTF scene, and its mesh is {}",
+            path.display(),
+            mesh.display()
+        ));
+    }
+    std::path::absolute(&mesh).map_err(|error| format!("{}: {error}", mesh.display()))
 }
 
 /// Where a [`RelightScene`] is: loading (with the stage and its fraction
@@ -220,9 +279,11 @@ fn start_loading(
                 fraction: 0.0,
             },
             RelightStats::default(),
-            Transform::default(),
-            Visibility::default(),
         ));
+        // An adopted scene's root has the app's transform already.
+        commands
+            .entity(entity)
+            .insert_if_new((Transform::default(), Visibility::default()));
     }
 }
 
@@ -352,7 +413,6 @@ impl Drop for Worker {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
 fn finish_loading(
     mut commands: Commands,
     mut loading: Query<(
@@ -382,32 +442,302 @@ fn finish_loading(
             Ok(result) => result,
         };
         commands.entity(entity).remove::<Loading>();
-        let Loaded {
-            context,
-            technique,
-            moving_meshes: moving,
-        } = match loaded {
+        let loaded = match loaded {
             Ok(loaded) => loaded,
             Err(message) => {
                 fail(&mut status, message);
                 continue;
             }
         };
-        let scene = &context.scene;
-        let atlas = &context.atlas;
-        let layout = LightmapLayout::new(atlas);
-        let lightmap = images.add(convert::float_image(
-            atlas.width,
-            atlas.height,
-            1,
-            vec![0; layout.texel_count() * 8],
-        ));
+        if settings.adopt {
+            *status = RelightStatus::Loading {
+                stage: "waiting for Bevy to spawn the glTF scene".into(),
+                fraction: 1.0,
+            };
+            commands
+                .entity(entity)
+                .insert(AwaitingGltf(Mutex::new(Some(loaded))));
+            continue;
+        }
+        let lightmap = images.add(empty_lightmap(&loaded.context));
+        let mut assets = SceneAssets {
+            meshes: &mut meshes,
+            materials: &mut materials,
+            images: &mut images,
+        };
+        start_running(
+            &mut commands,
+            entity,
+            settings,
+            loaded,
+            Adopted::Nothing,
+            lightmap,
+            &mut assets,
+            &mut stats,
+        );
+        *status = RelightStatus::Running;
+    }
+}
+
+/// A loaded scene waiting for Bevy to spawn the glTF it adopts.
+#[derive(Component)]
+struct AwaitingGltf(Mutex<Option<Loaded>>);
+
+/// The assets the plugin adds while starting a scene.
+struct SceneAssets<'a> {
+    meshes: &'a mut Assets<Mesh>,
+    materials: &'a mut Assets<StandardMaterial>,
+    images: &'a mut Assets<Image>,
+}
+
+/// What the app's own entities already stand for.
+enum Adopted {
+    Nothing,
+    /// A glTF scene's meshes, and which of relight's lights its lights
+    /// are.
+    Gltf {
+        lights: Vec<bool>,
+    },
+}
+
+/// The lightmap image before the first update: black, the atlas's size.
+fn empty_lightmap(context: &SceneContext) -> Image {
+    let atlas = &context.atlas;
+    convert::float_image(
+        atlas.width,
+        atlas.height,
+        1,
+        vec![0; atlas.width as usize * atlas.height as usize * 8],
+    )
+}
+
+/// Once Bevy has spawned an adopted glTF scene (its `WorldInstance` is
+/// ready, and its transforms were propagated in that frame's PostUpdate):
+/// gives its meshes relight's atlas and the lightmap, claims its lights,
+/// and starts the scene.
+#[allow(clippy::too_many_arguments)]
+fn adopt_gltf_scenes(
+    mut commands: Commands,
+    mut waiting: AwaitingScenes,
+    spawner: Option<Res<bevy::world_serialization::WorldInstanceSpawner>>,
+    children: Query<&Children>,
+    mesh_entities: AdoptableMeshes,
+    light_entities: RelightLightCandidates,
+    mut meshes: ResMut<Assets<Mesh>>,
+    mut materials: ResMut<Assets<StandardMaterial>>,
+    mut images: ResMut<Assets<Image>>,
+) {
+    for (entity, settings, awaiting, root, mut status, mut stats, instance) in &mut waiting {
+        let Some(instance) = instance else {
+            if settings.adopt {
+                commands.entity(entity).remove::<AwaitingGltf>();
+                fail(
+                    &mut status,
+                    "RelightScene::adopt_gltf needs a WorldAssetRoot (the glTF scene Bevy loads) on the same entity".into(),
+                );
+            }
+            continue;
+        };
+        if !spawner
+            .as_ref()
+            .is_some_and(|spawner| spawner.instance_is_ready(**instance))
+        {
+            continue;
+        }
+        commands.entity(entity).remove::<AwaitingGltf>();
+        let Some(loaded) = awaiting.0.lock().unwrap().take() else {
+            continue;
+        };
+        let to_scene = root.affine().inverse();
+        let descendants: Vec<Entity> = children.iter_descendants(entity).collect();
+        let found: Vec<crate::adopt::MeshEntity> = descendants
+            .iter()
+            .filter_map(|&descendant| {
+                let (mesh, transform, name, material) = mesh_entities.get(descendant).ok()?;
+                Some(crate::adopt::MeshEntity {
+                    entity: descendant,
+                    name: name.map(|name| name.as_str()),
+                    label: mesh.0.path().and_then(|path| path.label()),
+                    to_scene: Mat4::from(to_scene * transform.affine()),
+                    mesh: meshes.get(&mesh.0)?,
+                    material: material.map(|material| material.0.clone()),
+                })
+            })
+            .collect();
+        let adoption = match crate::adopt::adopt_meshes(
+            &loaded.context.scene,
+            &loaded.context.atlas,
+            &found,
+        ) {
+            Ok(adoption) => adoption,
+            Err(message) => {
+                fail(&mut status, message);
+                continue;
+            }
+        };
+        if !adoption.skipped.is_empty() {
+            warn!(
+                "relight: {} mesh entities of the adopted scene are not relight's glTF triangle lists and get no lightmap: {}",
+                adoption.skipped.len(),
+                adoption.skipped.join(", ")
+            );
+        }
+        if settings.relight_shading {
+            let mut shaded = std::collections::HashSet::new();
+            for adopted in &adoption.meshes {
+                let (Some(handle), Some(material)) = (&adopted.material, adopted.relight_material)
+                else {
+                    continue;
+                };
+                if shaded.insert(handle.id()) {
+                    if let Some(mut bevy_material) = materials.get_mut(handle) {
+                        convert::relight_shading(
+                            &mut bevy_material,
+                            &loaded.context.scene.materials[material as usize],
+                        );
+                    }
+                }
+            }
+        }
+        let lightmap = images.add(empty_lightmap(&loaded.context));
+        for adopted in adoption.meshes {
+            commands.entity(adopted.entity).insert((
+                Mesh3d(meshes.add(adopted.mesh)),
+                Lightmap {
+                    image: lightmap.clone(),
+                    ..default()
+                },
+            ));
+        }
+        let scene = &loaded.context.scene;
+        let mut claimed = vec![false; scene.lights.len()];
+        if settings.spawn_lights {
+            let lights: Vec<(Entity, Light)> = descendants
+                .iter()
+                .filter_map(|&descendant| {
+                    let (transform, point, spot, directional) =
+                        light_entities.get(descendant).ok()?;
+                    let in_scene = GlobalTransform::from(to_scene * transform.affine());
+                    convert::bevy_light_to_relight(&in_scene, point, spot, directional)
+                        .map(|light| (descendant, light))
+                })
+                .collect();
+            let found: Vec<Light> = lights.iter().map(|(_, light)| light.clone()).collect();
+            let range = scene_range(scene);
+            for ((light_entity, _), matched) in
+                lights.iter().zip(crate::adopt::match_lights(scene, &found))
+            {
+                match matched {
+                    Some(index) => {
+                        claimed[index] = true;
+                        let mut commands = commands.entity(*light_entity);
+                        commands.insert(RelightLight(index));
+                        convert::insert_light_values(&scene.lights[index], range, &mut commands);
+                    }
+                    None => warn!(
+                        "relight: a light of the adopted scene is none of {}'s lights, so relight does not see it",
+                        scene.source.display()
+                    ),
+                }
+            }
+        }
+        let mut assets = SceneAssets {
+            meshes: &mut meshes,
+            materials: &mut materials,
+            images: &mut images,
+        };
+        start_running(
+            &mut commands,
+            entity,
+            settings,
+            loaded,
+            Adopted::Gltf { lights: claimed },
+            lightmap,
+            &mut assets,
+            &mut stats,
+        );
+        *status = RelightStatus::Running;
+    }
+}
+
+/// Scenes whose glTF Bevy may have spawned by now.
+type AwaitingScenes<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static RelightScene,
+        &'static AwaitingGltf,
+        &'static GlobalTransform,
+        &'static mut RelightStatus,
+        &'static mut RelightStats,
+        Option<&'static bevy::world_serialization::WorldInstance>,
+    ),
+>;
+
+/// The mesh entities an adopted scene may hold.
+type AdoptableMeshes<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static Mesh3d,
+        &'static GlobalTransform,
+        Option<&'static Name>,
+        Option<&'static MeshMaterial3d<StandardMaterial>>,
+    ),
+>;
+
+/// The lights an adopted scene may hold.
+type RelightLightCandidates<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static GlobalTransform,
+        Option<&'static PointLight>,
+        Option<&'static SpotLight>,
+        Option<&'static DirectionalLight>,
+    ),
+>;
+
+/// Where Bevy may cut the scene's point and spot lights off: well past
+/// the scene (relight's fall off with the inverse square only).
+fn scene_range(scene: &relight_scene::Scene) -> f32 {
+    let (lo, hi) = scene.mesh.bounds();
+    (hi - lo).length() * 4.0
+}
+
+/// Spawns what the app does not have already (the static meshes, the
+/// lights, the moving meshes, the irradiance volume) and starts the worker.
+#[allow(clippy::too_many_arguments)]
+fn start_running(
+    commands: &mut Commands,
+    entity: Entity,
+    settings: &RelightScene,
+    loaded: Loaded,
+    adopted: Adopted,
+    lightmap: Handle<Image>,
+    assets: &mut SceneAssets,
+    stats: &mut RelightStats,
+) {
+    let Loaded {
+        context,
+        technique,
+        moving_meshes: moving,
+    } = loaded;
+    let scene = &context.scene;
+    let atlas = &context.atlas;
+    let layout = LightmapLayout::new(atlas);
+    let (spawn_static_meshes, lights_present) = match adopted {
+        Adopted::Nothing => (true, vec![false; scene.lights.len()]),
+        Adopted::Gltf { lights } => (false, lights),
+    };
+    let material_handles: Vec<Handle<StandardMaterial>> = if spawn_static_meshes {
         let textures: Vec<Handle<Image>> = scene
             .textures
             .iter()
-            .map(|texture| images.add(convert::albedo_image(texture)))
+            .map(|texture| assets.images.add(convert::albedo_image(texture)))
             .collect();
-        let material_handles: Vec<Handle<StandardMaterial>> = scene
+        scene
             .materials
             .iter()
             .map(|material| {
@@ -419,15 +749,19 @@ fn finish_loading(
                     // Emitters show as light seen directly, not bounced.
                     material.emissive = LinearRgba::BLACK;
                 }
-                materials.add(material)
+                assets.materials.add(material)
             })
-            .collect();
-        let (lo, hi) = scene.mesh.bounds();
-        let range = (hi - lo).length() * 4.0;
-        commands.entity(entity).with_children(|children| {
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let (lo, hi) = scene.mesh.bounds();
+    let range = scene_range(scene);
+    commands.entity(entity).with_children(|children| {
+        if spawn_static_meshes {
             for (material, mesh) in convert::static_meshes(scene, atlas) {
                 children.spawn((
-                    Mesh3d(meshes.add(mesh)),
+                    Mesh3d(assets.meshes.add(mesh)),
                     MeshMaterial3d(material_handles[material as usize].clone()),
                     Lightmap {
                         image: lightmap.clone(),
@@ -435,92 +769,93 @@ fn finish_loading(
                     },
                 ));
             }
-            for (index, mesh) in moving.iter().enumerate() {
-                let mesh_materials: Vec<Handle<StandardMaterial>> = mesh
-                    .materials
-                    .iter()
-                    .map(|material| materials.add(convert::material(material, None)))
-                    .collect();
-                children
-                    .spawn((
-                        RelightMovingMesh {
-                            scene: entity,
-                            index,
-                        },
-                        convert::transform_of(mesh.pose(0)),
-                        Visibility::default(),
-                    ))
-                    .with_children(|parts| {
-                        for (material, part) in convert::moving_meshes(mesh) {
-                            parts.spawn((
-                                Mesh3d(meshes.add(part)),
-                                MeshMaterial3d(mesh_materials[material as usize].clone()),
-                            ));
-                        }
-                    });
-            }
-            if settings.spawn_lights {
-                for (index, light) in scene.lights.iter().enumerate() {
+        }
+        for (index, mesh) in moving.iter().enumerate() {
+            let mesh_materials: Vec<Handle<StandardMaterial>> = mesh
+                .materials
+                .iter()
+                .map(|material| assets.materials.add(convert::material(material, None)))
+                .collect();
+            children
+                .spawn((
+                    RelightMovingMesh {
+                        scene: entity,
+                        index,
+                    },
+                    convert::transform_of(mesh.pose(0)),
+                    Visibility::default(),
+                ))
+                .with_children(|parts| {
+                    for (material, part) in convert::moving_meshes(mesh) {
+                        parts.spawn((
+                            Mesh3d(assets.meshes.add(part)),
+                            MeshMaterial3d(mesh_materials[material as usize].clone()),
+                        ));
+                    }
+                });
+        }
+        if settings.spawn_lights {
+            for (index, light) in scene.lights.iter().enumerate() {
+                if !lights_present[index] {
                     let mut light_entity = children.spawn(RelightLight(index));
                     convert::bevy_light(light, range, &mut light_entity);
                 }
             }
-        });
-        let grid = (settings.volume_cells > 0)
-            .then(|| VolumeGrid::covering(lo, hi, settings.volume_cells));
-        let volume = grid.map(|grid| {
-            let size = grid.texture_size();
-            let handle = images.add(convert::float_image(
-                size.x,
-                size.y,
-                size.z,
-                vec![0; grid.voxel_count() * 6 * 8],
-            ));
-            let (centre, scale) = grid.centre_and_scale();
-            commands.spawn((
-                IrradianceVolume {
-                    voxels: handle.clone(),
-                    intensity: 1.0,
-                    // The lightmap is these meshes' indirect light.
-                    affects_lightmapped_meshes: false,
-                },
-                LightProbe::default(),
-                Transform::from_translation(convert::vec3(centre)).with_scale(convert::vec3(scale)),
-                ChildOf(entity),
-            ));
-            handle
-        });
-        let static_direct = (!settings.indirect_only && context.direct().has_static_light())
-            .then(|| static_direct_light(&context));
-        stats.camera = Some(scene.camera.clone());
-        commands
-            .entity(entity)
-            .insert(RelightContext(context.clone()));
-        let mailbox = Arc::new(Mailbox::default());
-        let (done_sender, done) = channel();
-        let context = context.clone();
-        let worker = Work {
-            context,
-            layout,
-            grid,
-            volume_every: settings.volume_every.max(1),
-            static_direct,
-        };
-        let jobs = mailbox.clone();
-        std::thread::spawn(move || worker.run(technique, &jobs, done_sender));
-        commands.entity(entity).insert(Worker {
-            mailbox,
-            done: Mutex::new(done),
-            posted: None,
-            settle: 0,
-            unchanged_frames: 0,
-            shown_frame: None,
-            lightmap,
-            volume,
-            moving_mesh_poses: moving.iter().map(|mesh| mesh.pose(0)).collect(),
-        });
-        *status = RelightStatus::Running;
-    }
+        }
+    });
+    let grid =
+        (settings.volume_cells > 0).then(|| VolumeGrid::covering(lo, hi, settings.volume_cells));
+    let volume = grid.map(|grid| {
+        let size = grid.texture_size();
+        let handle = assets.images.add(convert::float_image(
+            size.x,
+            size.y,
+            size.z,
+            vec![0; grid.voxel_count() * 6 * 8],
+        ));
+        let (centre, scale) = grid.centre_and_scale();
+        commands.spawn((
+            IrradianceVolume {
+                voxels: handle.clone(),
+                intensity: 1.0,
+                // The lightmap is these meshes' indirect light.
+                affects_lightmapped_meshes: false,
+            },
+            LightProbe::default(),
+            Transform::from_translation(convert::vec3(centre)).with_scale(convert::vec3(scale)),
+            ChildOf(entity),
+        ));
+        handle
+    });
+    let static_direct = (!settings.indirect_only && context.direct().has_static_light())
+        .then(|| static_direct_light(&context));
+    stats.camera = Some(scene.camera.clone());
+    commands
+        .entity(entity)
+        .insert(RelightContext(context.clone()));
+    let mailbox = Arc::new(Mailbox::default());
+    let (done_sender, done) = channel();
+    let moving_mesh_poses = moving.iter().map(|mesh| mesh.pose(0)).collect();
+    let worker = Work {
+        context,
+        layout,
+        grid,
+        volume_every: settings.volume_every.max(1),
+        static_direct,
+    };
+    let jobs = mailbox.clone();
+    std::thread::spawn(move || worker.run(technique, &jobs, done_sender));
+    commands.entity(entity).insert(Worker {
+        mailbox,
+        done: Mutex::new(done),
+        posted: None,
+        settle: 0,
+        unchanged_frames: 0,
+        shown_frame: None,
+        lightmap,
+        volume,
+        moving_mesh_poses,
+    });
 }
 
 /// Direct light from what Bevy cannot draw as lights: emissive

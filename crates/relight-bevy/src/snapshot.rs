@@ -49,9 +49,31 @@ struct Captured(Arc<Mutex<Option<Image>>>);
 /// `indirect_only` the scene's Bevy lights are hidden (Bevy draws no
 /// direct light; relight still reads them) and the lightmap holds indirect
 /// light only.
+///
+/// With [`RelightScene::adopt`] Bevy loads the scene's glTF itself (the
+/// file, or the scene file's mesh) and the plugin adopts it.
 pub fn render_snapshot(settings: &SnapshotSettings) -> Result<Snapshot, String> {
-    let mut app = headless_app();
+    let gltf = settings
+        .scene
+        .adopt
+        .then(|| crate::gltf_to_adopt(&settings.scene.path))
+        .transpose()?;
+    let mut app = headless_app(gltf.as_ref().and_then(|path| path.parent()));
     let scene_entity = app.world_mut().spawn(settings.scene.clone()).id();
+    if let Some(path) = &gltf {
+        let file = path
+            .file_name()
+            .ok_or_else(|| format!("{}: not a file", path.display()))?
+            .to_string_lossy()
+            .into_owned();
+        let world = app.world_mut();
+        let handle = world
+            .resource::<AssetServer>()
+            .load(GltfAssetLabel::Scene(0).from_asset(file));
+        world
+            .entity_mut(scene_entity)
+            .insert(WorldAssetRoot(handle));
+    }
     let captured = app.world().resource::<Captured>().clone();
     let started = Instant::now();
     let mut camera_spawned = false;
@@ -177,11 +199,20 @@ fn to_snapshot(image: Image, stages: Vec<(String, f64)>) -> Result<Snapshot, Str
 }
 
 /// A windowless Bevy app with relight's plugin, rendering on this thread
-/// (no pipelined rendering), no ambient light and a black background.
-fn headless_app() -> App {
+/// (no pipelined rendering), no ambient light and a black background;
+/// assets come from `asset_folder` (default: Bevy's).
+fn headless_app(asset_folder: Option<&std::path::Path>) -> App {
     let mut app = App::new();
+    let assets = match asset_folder {
+        Some(folder) => AssetPlugin {
+            file_path: folder.display().to_string(),
+            ..default()
+        },
+        None => AssetPlugin::default(),
+    };
     app.add_plugins(
         DefaultPlugins
+            .set(assets)
             .set(WindowPlugin {
                 primary_window: None,
                 exit_condition: ExitCondition::DontExit,
@@ -250,7 +281,7 @@ pub fn run_bridge(
     frame_interval: Duration,
     timeout: Duration,
 ) -> Result<BridgeRun, String> {
-    let mut app = headless_app();
+    let mut app = headless_app(None);
     let scene_entity = app.world_mut().spawn(scene.clone()).id();
     let started = Instant::now();
     let mut run = BridgeRun::default();

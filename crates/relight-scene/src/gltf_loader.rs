@@ -162,6 +162,9 @@ struct Primitive {
     lightmap_uvs: Option<Vec<Vec2>>,
     triangles: Vec<[u32; 3]>,
     material: Option<u32>,
+    /// Where it came from; `None` for strips and fans, whose triangles
+    /// relight makes itself (an engine keeps them as strips and fans).
+    source: Option<crate::GltfPrimitive>,
 }
 
 struct Loader<'a> {
@@ -685,7 +688,7 @@ impl Loader<'_> {
                 )));
             }
             if let Some(mesh) = node.mesh {
-                self.add_mesh(mesh.value(), world)?;
+                self.add_mesh(node_index, mesh.value(), world)?;
             }
             if let Some(camera) = node.camera {
                 self.add_camera(camera.value(), world)?;
@@ -727,7 +730,12 @@ impl Loader<'_> {
         ))
     }
 
-    fn add_mesh(&mut self, mesh_index: usize, world: Mat4) -> Result<(), SceneError> {
+    fn add_mesh(
+        &mut self,
+        node_index: usize,
+        mesh_index: usize,
+        world: Mat4,
+    ) -> Result<(), SceneError> {
         use json::mesh::{Mode, Semantic};
         let root = self.root;
         let mesh = root
@@ -831,12 +839,21 @@ impl Loader<'_> {
                 }
                 None => None,
             };
+            let source = matches!(mode, Mode::Triangles).then(|| crate::GltfPrimitive {
+                node: node_index as u32,
+                mesh: mesh_index as u32,
+                primitive: primitive_index as u32,
+                world,
+                mirrored,
+                triangles: Vec::new(),
+            });
             self.primitives.push(Primitive {
                 positions,
                 texcoords,
                 lightmap_uvs,
                 triangles,
                 material,
+                source,
             });
         }
         Ok(())
@@ -1015,6 +1032,13 @@ impl Loader<'_> {
                 needs_default = true;
                 default_material
             });
+            if let Some(mut source) = primitive.source {
+                let first = mesh.triangles.len() as u32;
+                source.triangles = (first..first + primitive.triangles.len() as u32)
+                    .map(Some)
+                    .collect();
+                self.output.gltf_primitives.push(source);
+            }
             for triangle in primitive.triangles {
                 mesh.triangles.push(triangle.map(|index| index + base));
                 mesh.material_ids.push(material);

@@ -258,6 +258,30 @@ pub struct Scene {
     /// Raw per-technique tables of the scene file (`[srp]`, `[[dynamic]]`,
     /// ...), parsed by the technique that owns them.
     pub technique_sections: std::collections::BTreeMap<String, toml::Value>,
+    /// Where each glTF mesh primitive went (glTF mesh files only): lets an
+    /// engine that loads the same file itself find relight's triangles, and
+    /// so its lightmap atlas, for each of its meshes.
+    pub gltf_primitives: Vec<GltfPrimitive>,
+}
+
+/// One triangle-list primitive of a glTF mesh as one node places it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GltfPrimitive {
+    /// The glTF node, mesh and primitive indices, as in the file.
+    pub node: u32,
+    pub mesh: u32,
+    pub primitive: u32,
+    /// The node's world transform: the file's scene space, which is
+    /// relight's.
+    pub world: glam::Mat4,
+    /// The world transform mirrors (negative determinant): relight swapped
+    /// the second and third corners of each triangle to keep the front face
+    /// counter-clockwise.
+    pub mirrored: bool,
+    /// For each triangle of the primitive, in the file's index order, the
+    /// scene triangle it became, or `None` where it was dropped as
+    /// degenerate.
+    pub triangles: Vec<Option<u32>>,
 }
 
 impl Scene {

@@ -167,6 +167,7 @@ pub(crate) fn load_obj(path: &Path) -> Result<LoadedMesh, SceneError> {
         lights: Vec::new(),
         camera: None,
         warnings,
+        gltf_primitives: Vec::new(),
     })
 }
 

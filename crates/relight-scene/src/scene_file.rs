@@ -406,6 +406,7 @@ pub(crate) struct LoadedMesh {
     pub lights: Vec<Light>,
     pub camera: Option<Camera>,
     pub warnings: Vec<String>,
+    pub gltf_primitives: Vec<crate::GltfPrimitive>,
 }
 
 /// Reads a scene file (TOML), or a mesh file (OBJ, glTF, GLB) as a scene
@@ -494,6 +495,7 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         mut lights,
         camera: mesh_camera,
         mut warnings,
+        mut gltf_primitives,
     } = loaded;
     if let Some(position) = mesh.positions.iter().position(|p| !p.is_finite()) {
         return Err(SceneError::Invalid {
@@ -501,7 +503,12 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
             message: format!("vertex {position} has a non-finite coordinate: fix or remove it"),
         });
     }
-    let dropped = drop_degenerate_triangles(&mut mesh);
+    let (dropped, kept) = drop_degenerate_triangles(&mut mesh);
+    for primitive in &mut gltf_primitives {
+        for triangle in primitive.triangles.iter_mut() {
+            *triangle = triangle.and_then(|old| kept[old as usize]);
+        }
+    }
     if dropped > 0 {
         warn(
             &mut warnings,
@@ -543,6 +550,7 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         source: file.path,
         warnings,
         technique_sections: file.extra,
+        gltf_primitives,
     })
 }
 
@@ -563,17 +571,21 @@ fn framing_camera(mesh: &Mesh) -> Camera {
 }
 
 /// Removes zero-area and non-finite triangles, then the vertices nobody uses
-/// any more, so bounds and vertex counts describe real geometry.
-fn drop_degenerate_triangles(mesh: &mut Mesh) -> usize {
+/// any more, so bounds and vertex counts describe real geometry. Returns
+/// how many triangles were dropped and, for each old triangle, its new
+/// index (`None`: dropped).
+fn drop_degenerate_triangles(mesh: &mut Mesh) -> (usize, Vec<Option<u32>>) {
     let before = mesh.triangles.len();
     let mut kept_triangles = Vec::with_capacity(before);
     let mut kept_materials = Vec::with_capacity(before);
+    let mut new_index = Vec::with_capacity(before);
     for (triangle, &material) in mesh.triangles.iter().zip(&mesh.material_ids) {
         let [a, b, c] = triangle.map(|index| mesh.positions[index as usize]);
         let doubled_area = (b - a).cross(c - a);
         let usable = doubled_area.is_finite()
             && doubled_area.length_squared() > 0.0
             && doubled_area.normalize_or_zero() != Vec3::ZERO;
+        new_index.push(usable.then_some(kept_triangles.len() as u32));
         if usable {
             kept_triangles.push(*triangle);
             kept_materials.push(material);
@@ -625,7 +637,7 @@ fn drop_degenerate_triangles(mesh: &mut Mesh) -> usize {
         }
         mesh.positions = positions;
     }
-    dropped
+    (dropped, new_index)
 }
 
 /// Records a non-fatal problem both for the caller ([`Scene::warnings`]) and

@@ -625,6 +625,68 @@ fn glb_with_embedded_texture() {
     );
 }
 
+/// An engine loading the same glTF finds each of its mesh entities'
+/// triangles in relight's scene through `Scene::gltf_primitives`: node,
+/// mesh and primitive, the node's world transform, and each file
+/// triangle's scene triangle in index order (corners swapped under a
+/// mirroring node).
+#[test]
+fn gltf_primitives_record_where_each_instance_went() {
+    let dir = TempDir::new("gltf-instances");
+    let mut json = quad_gltf(Some("quad.bin"));
+    // Node 4, a child of node 0, places the same mesh mirrored in x.
+    json["nodes"][0]["children"] = json!([4]);
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"mesh": 0, "translation": [5.0, 0.0, 0.0], "scale": [-1.0, 1.0, 1.0]}));
+    let scene = load_scene(&write_gltf(&dir, &json)).unwrap();
+    let records = &scene.gltf_primitives;
+    assert_eq!(records.len(), 2, "{records:?}");
+    assert_eq!(
+        (records[0].node, records[0].mesh, records[0].primitive),
+        (0, 0, 0)
+    );
+    assert_eq!(
+        (records[1].node, records[1].mesh, records[1].primitive),
+        (4, 0, 0)
+    );
+    assert!(!records[0].mirrored && records[1].mirrored);
+    assert!(records[1]
+        .world
+        .transform_point3(Vec3::ZERO)
+        .abs_diff_eq(Vec3::new(5.0, 2.0, 0.0), 1e-6));
+    assert_eq!(records[0].triangles, vec![Some(0), Some(1)]);
+    assert_eq!(records[1].triangles, vec![Some(2), Some(3)]);
+    // The file's triangle 1 (indices 0, 2, 3) under the mirror: corners
+    // 1 and 2 swapped, positions through the node's world transform.
+    let file_corners = [[0.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 0.0, 1.0]].map(Vec3::from_array);
+    let placed = scene.mesh.vertices(3);
+    let world = records[1].world;
+    for (corner, file_corner) in [(0, 0), (1, 2), (2, 1)] {
+        assert!(placed[corner].abs_diff_eq(world.transform_point3(file_corners[file_corner]), 1e-6));
+    }
+}
+
+/// A degenerate triangle that loading drops has no scene triangle, and
+/// the triangles after it keep pointing at theirs.
+#[test]
+fn gltf_primitives_follow_dropped_triangles() {
+    let dir = TempDir::new("gltf-degenerate");
+    let mut binary = quad_binary();
+    // Indices 0 1 1 (zero area), then 0 2 3.
+    binary.truncate(112);
+    for index in [0u16, 1, 1, 0, 2, 3] {
+        binary.extend(index.to_le_bytes());
+    }
+    dir.write("quad.bin", binary);
+    let json = quad_gltf(Some("quad.bin"));
+    dir.write("quad.gltf", serde_json::to_vec_pretty(&json).unwrap());
+    let scene = load_scene(&dir.write("scene.toml", mesh_only_toml("quad.gltf"))).unwrap();
+    assert_eq!(scene.mesh.triangles.len(), 1);
+    assert_eq!(scene.gltf_primitives[0].triangles, vec![None, Some(0)]);
+}
+
 #[test]
 fn gltf_uris_outside_the_folder_are_refused() {
     let outer = TempDir::new("gltf-escape");

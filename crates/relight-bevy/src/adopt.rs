@@ -1,0 +1,311 @@
+//! Adopting a glTF scene the app has Bevy load itself: its mesh entities
+//! keep their materials, names and components and get relight's atlas as
+//! UV 1 and the lightmap; its lights become the lights relight reads.
+//!
+//! relight loads the same file and records, for each triangle-list
+//! primitive each node places (`Scene::gltf_primitives`), the node's
+//! world transform and the scene triangle each file triangle became. A
+//! Bevy mesh entity names its primitive in its mesh handle's label
+//! (`Mesh{m}/Primitive{p}`, as Bevy's glTF loader writes it); among the
+//! nodes that place that primitive, its transform relative to the scene
+//! entity picks the node. Each entity's mesh is then copied with one
+//! vertex per triangle corner (atlas charts have seams the file's vertices
+//! do not) and relight's atlas UVs, after its corners are checked against
+//! relight's copy, so a different file or a changed mesh is an error
+//! instead of a scrambled lightmap.
+
+use crate::convert;
+use bevy::mesh::{Indices, PrimitiveTopology, VertexAttributeValues};
+use bevy::prelude::*;
+use relight_scene::{GltfPrimitive, Light, Scene};
+use std::collections::HashMap;
+
+/// A mesh entity of the adopted scene, as the plugin found it.
+pub(crate) struct MeshEntity<'a> {
+    pub entity: Entity,
+    pub name: Option<&'a str>,
+    /// Its mesh handle's label (`Mesh0/Primitive1`), if it has one.
+    pub label: Option<&'a str>,
+    /// Mesh space to the scene entity's space.
+    pub to_scene: Mat4,
+    pub mesh: &'a Mesh,
+    pub material: Option<Handle<StandardMaterial>>,
+}
+
+/// A mesh entity's replacement mesh, with relight's atlas as UV 1.
+pub(crate) struct AdoptedMesh {
+    pub entity: Entity,
+    pub mesh: Mesh,
+    pub material: Option<Handle<StandardMaterial>>,
+    /// relight's material of its triangles (`None`: all degenerate).
+    pub relight_material: Option<u32>,
+}
+
+/// What adoption found: meshes to replace, and the entities not adopted
+/// (for a warning: they get no lightmap).
+pub(crate) struct MeshAdoption {
+    pub meshes: Vec<AdoptedMesh>,
+    pub skipped: Vec<String>,
+}
+
+/// Matches the scene's mesh entities with relight's glTF primitives and
+/// builds their lightmapped meshes. An entity that names a primitive
+/// relight has but matches none of its placements, or whose triangles are
+/// not relight's, is an error naming it.
+pub(crate) fn adopt_meshes(
+    scene: &Scene,
+    atlas: &relight_scene::atlas::Atlas,
+    entities: &[MeshEntity],
+) -> Result<MeshAdoption, String> {
+    if scene.gltf_primitives.is_empty() {
+        return Err(format!(
+            "{}: relight's scene has no glTF mesh primitives to adopt; adoption needs the glTF file (or a scene file whose mesh is it) that Bevy loads",
+            scene.source.display()
+        ));
+    }
+    let mut placements: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
+    for (index, record) in scene.gltf_primitives.iter().enumerate() {
+        placements
+            .entry((record.mesh, record.primitive))
+            .or_default()
+            .push(index);
+    }
+    let (lo, hi) = scene.mesh.bounds();
+    // Float error of composing node transforms in Bevy's and relight's
+    // glam, relative to the scene's size; a different mesh is off by far
+    // more.
+    let tolerance = 1e-4 * (hi - lo).length().max(1e-3);
+    let size = Vec2::new(atlas.width as f32, atlas.height as f32);
+    let mut used = vec![false; scene.gltf_primitives.len()];
+    let mut adoption = MeshAdoption {
+        meshes: Vec::new(),
+        skipped: Vec::new(),
+    };
+    for found in entities {
+        let what = || {
+            format!(
+                "mesh entity {}{}",
+                found.name.unwrap_or("(unnamed)"),
+                found
+                    .label
+                    .map(|label| format!(" ({label})"))
+                    .unwrap_or_default()
+            )
+        };
+        let Some((mesh_index, primitive_index)) = found.label.and_then(primitive_of_label) else {
+            adoption.skipped.push(what());
+            continue;
+        };
+        let Some(candidates) = placements.get(&(mesh_index, primitive_index)) else {
+            // Strips and fans, and primitives outside the file's scene.
+            adoption.skipped.push(what());
+            continue;
+        };
+        let best = candidates
+            .iter()
+            .copied()
+            .filter(|&index| !used[index])
+            .map(|index| {
+                let world = to_bevy(scene.gltf_primitives[index].world);
+                (index, max_difference(world, found.to_scene))
+            })
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let scale = found
+            .to_scene
+            .to_cols_array()
+            .iter()
+            .fold(1.0f32, |m, v| m.max(v.abs()));
+        let Some((index, _)) = best.filter(|(_, difference)| *difference <= 1e-4 * scale) else {
+            return Err(format!(
+                "{}: no node of {} places glTF mesh {mesh_index} primitive {primitive_index} where Bevy has it; adopt a scene whose root is the entity with the RelightScene, loaded without coordinate conversion",
+                what(),
+                scene.source.display()
+            ));
+        };
+        used[index] = true;
+        let record = &scene.gltf_primitives[index];
+        let uv1 = corner_lightmap_uvs(scene, atlas, record, found, tolerance, size)
+            .map_err(|message| format!("{}: {message}", what()))?;
+        let mut mesh = found.mesh.clone();
+        // Bevy 0.19.1's StandardMaterial shader samples its textures at
+        // UV 0 whenever a mesh has any UVs, so a mesh with UV 1 alone fails
+        // to compile its pipeline and is not drawn: untextured glTF
+        // meshes (no TEXCOORD_0) get zeros.
+        if !mesh.contains_attribute(Mesh::ATTRIBUTE_UV_0) {
+            let vertices = mesh.count_vertices();
+            mesh.try_insert_attribute(Mesh::ATTRIBUTE_UV_0, vec![[0.0f32, 0.0]; vertices])
+                .map_err(|error| format!("{}: {error}", what()))?;
+        }
+        mesh.try_duplicate_vertices()
+            .and_then(|()| mesh.try_insert_attribute(Mesh::ATTRIBUTE_UV_1, uv1))
+            .map_err(|error| format!("{}: {error}", what()))?;
+        adoption.meshes.push(AdoptedMesh {
+            entity: found.entity,
+            mesh,
+            material: found.material.clone(),
+            relight_material: record
+                .triangles
+                .iter()
+                .flatten()
+                .next()
+                .map(|&triangle| scene.mesh.material_ids[triangle as usize]),
+        });
+    }
+    Ok(adoption)
+}
+
+/// `Mesh{m}/Primitive{p}` as (m, p).
+fn primitive_of_label(label: &str) -> Option<(u32, u32)> {
+    let (mesh, primitive) = label.strip_prefix("Mesh")?.split_once("/Primitive")?;
+    Some((mesh.parse().ok()?, primitive.parse().ok()?))
+}
+
+/// relight's glam and Bevy's are different versions.
+fn to_bevy(matrix: relight_core::Mat4) -> Mat4 {
+    Mat4::from_cols_array(&matrix.to_cols_array())
+}
+
+fn max_difference(a: Mat4, b: Mat4) -> f32 {
+    a.to_cols_array()
+        .iter()
+        .zip(b.to_cols_array())
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()))
+}
+
+/// Relight's atlas UV (0..1) of each corner of the entity's mesh, in the
+/// order `Mesh::duplicate_vertices` lays them out, after checking each
+/// corner against relight's copy of the triangle.
+fn corner_lightmap_uvs(
+    scene: &Scene,
+    atlas: &relight_scene::atlas::Atlas,
+    record: &GltfPrimitive,
+    found: &MeshEntity,
+    tolerance: f32,
+    size: Vec2,
+) -> Result<Vec<[f32; 2]>, String> {
+    let mesh = found.mesh;
+    if mesh.primitive_topology() != PrimitiveTopology::TriangleList {
+        return Err(format!(
+            "its mesh is a {:?}, relight's copy a triangle list",
+            mesh.primitive_topology()
+        ));
+    }
+    let positions = match mesh.try_attribute(Mesh::ATTRIBUTE_POSITION) {
+        Ok(VertexAttributeValues::Float32x3(positions)) => positions,
+        Ok(_) => return Err("its positions are not three floats a vertex".into()),
+        Err(error) => {
+            return Err(format!(
+                "{error}: keep the glTF's meshes in the main world (GltfLoaderSettings::load_meshes with MAIN_WORLD) until relight has adopted them"
+            ))
+        }
+    };
+    let corners: Vec<usize> = match mesh.try_indices_option().map_err(|e| e.to_string())? {
+        Some(Indices::U16(indices)) => indices.iter().map(|&i| i as usize).collect(),
+        Some(Indices::U32(indices)) => indices.iter().map(|&i| i as usize).collect(),
+        None => (0..positions.len()).collect(),
+    };
+    let triangle_count = corners.len() / 3;
+    if triangle_count != record.triangles.len() || !corners.len().is_multiple_of(3) {
+        return Err(format!(
+            "it has {} corners, relight's copy of node {} {} triangles: is it the same file?",
+            corners.len(),
+            record.node,
+            record.triangles.len()
+        ));
+    }
+    // relight swapped corners 1 and 2 under a mirroring node.
+    let relight_corner = if record.mirrored {
+        [0, 2, 1]
+    } else {
+        [0, 1, 2]
+    };
+    let mut uvs = Vec::with_capacity(corners.len());
+    for (triangle, file_corners) in record.triangles.iter().zip(corners.chunks_exact(3)) {
+        let Some(scene_triangle) = triangle.map(|t| t as usize) else {
+            // Dropped as degenerate: no area to light.
+            uvs.extend([[0.0, 0.0]; 3]);
+            continue;
+        };
+        let placed = scene.mesh.vertices(scene_triangle);
+        let chart = atlas.triangle_uvs[scene_triangle];
+        for (corner, &vertex) in file_corners.iter().enumerate() {
+            let position = positions.get(vertex).ok_or_else(|| {
+                format!("index {vertex} is past its {} vertices", positions.len())
+            })?;
+            let in_scene = found.to_scene.transform_point3(Vec3::from_array(*position));
+            let relight = convert::vec3(placed[relight_corner[corner]]);
+            if in_scene.distance(relight) > tolerance {
+                return Err(format!(
+                    "its triangle {} is at {in_scene}, relight's copy at {relight}: is it the same file?",
+                    uvs.len() / 3
+                ));
+            }
+            uvs.push(
+                (Vec2::from_array(chart[relight_corner[corner]].to_array()) / size).to_array(),
+            );
+        }
+    }
+    Ok(uvs)
+}
+
+/// For each Bevy light of the adopted scene (kind, position and direction
+/// in the scene entity's space, as `bevy_light_to_relight` reads them),
+/// the scene light it is, matched by kind, place and direction; each scene
+/// light at most once.
+pub(crate) fn match_lights(scene: &Scene, found: &[Light]) -> Vec<Option<usize>> {
+    let (lo, hi) = scene.mesh.bounds();
+    let tolerance = 1e-4 * (hi - lo).length().max(1e-3);
+    let mut taken = vec![false; scene.lights.len()];
+    found
+        .iter()
+        .map(|light| {
+            let index = scene
+                .lights
+                .iter()
+                .enumerate()
+                .position(|(index, candidate)| {
+                    !taken[index] && same_place(light, candidate, tolerance)
+                })?;
+            taken[index] = true;
+            Some(index)
+        })
+        .collect()
+}
+
+fn same_place(a: &Light, b: &Light, tolerance: f32) -> bool {
+    let aligned = |d: relight_core::Vec3, e: relight_core::Vec3| d.dot(e) > 1.0 - 1e-4;
+    match (a, b) {
+        (Light::Point { position: p, .. }, Light::Point { position: q, .. }) => {
+            p.distance(*q) <= tolerance
+        }
+        (
+            Light::Spot {
+                position: p,
+                direction: d,
+                ..
+            },
+            Light::Spot {
+                position: q,
+                direction: e,
+                ..
+            },
+        ) => p.distance(*q) <= tolerance && aligned(*d, *e),
+        (Light::Directional { direction: d, .. }, Light::Directional { direction: e, .. }) => {
+            aligned(*d, *e)
+        }
+        _ => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn primitive_labels_parse() {
+        assert_eq!(primitive_of_label("Mesh3/Primitive12"), Some((3, 12)));
+        assert_eq!(primitive_of_label("Mesh3"), None);
+        assert_eq!(primitive_of_label("Material0"), None);
+        assert_eq!(primitive_of_label("Mesh/Primitive1"), None);
+    }
+}
