@@ -300,6 +300,169 @@ fn same_place(a: &Light, b: &Light, tolerance: f32) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use bevy::asset::RenderAssetUsages;
+    use relight_scene::atlas::{Atlas, TexelDensity};
+
+    /// A unit quad (two triangles) as glTF mesh 0 primitive 0, placed by
+    /// node 3 at x + 2 and, mirrored in x, by node 5 at x + 6; file
+    /// triangle 0 of node 5 was dropped as degenerate.
+    fn two_placements() -> (Scene, Atlas) {
+        let corners = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0],
+        ];
+        let file_triangles = [[0u32, 1, 2], [0, 2, 3]];
+        let place = relight_core::Mat4::from_translation(relight_core::Vec3::new(2.0, 0.0, 0.0));
+        let mirror = relight_core::Mat4::from_translation(relight_core::Vec3::new(6.0, 0.0, 0.0))
+            * relight_core::Mat4::from_scale(relight_core::Vec3::new(-1.0, 1.0, 1.0));
+        let mut mesh = relight_scene::Mesh::default();
+        for world in [place, mirror] {
+            let base = mesh.positions.len() as u32;
+            mesh.positions
+                .extend(corners.map(|c| world.transform_point3(relight_core::Vec3::from_array(c))));
+            let mirrored = world.determinant() < 0.0;
+            for (index, triangle) in file_triangles.iter().enumerate() {
+                if mirrored && index == 0 {
+                    continue;
+                }
+                let [a, b, c] = triangle.map(|corner| corner + base);
+                mesh.triangles
+                    .push(if mirrored { [a, c, b] } else { [a, b, c] });
+                mesh.material_ids.push(0);
+            }
+        }
+        let record = |node, world, mirrored, triangles| GltfPrimitive {
+            node,
+            mesh: 0,
+            primitive: 0,
+            world,
+            mirrored,
+            triangles,
+        };
+        let scene = Scene {
+            mesh,
+            materials: vec![relight_scene::Material::default()],
+            gltf_primitives: vec![
+                record(3, place, false, vec![Some(0), Some(1)]),
+                record(5, mirror, true, vec![None, Some(2)]),
+            ],
+            ..Scene::default()
+        };
+        let atlas = Atlas::build(&scene, TexelDensity::TargetResolution(64)).unwrap();
+        (scene, atlas)
+    }
+
+    fn bevy_quad() -> Mesh {
+        Mesh::new(
+            PrimitiveTopology::TriangleList,
+            RenderAssetUsages::default(),
+        )
+        .with_inserted_attribute(
+            Mesh::ATTRIBUTE_POSITION,
+            vec![
+                [0.0f32, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0],
+                [0.0, 1.0, 0.0],
+            ],
+        )
+        .with_inserted_indices(Indices::U16(vec![0, 1, 2, 0, 2, 3]))
+    }
+
+    fn entity<'a>(index: u32, mesh: &'a Mesh, to_scene: Mat4) -> MeshEntity<'a> {
+        MeshEntity {
+            entity: Entity::from_raw_u32(index).unwrap(),
+            name: None,
+            label: Some("Mesh0/Primitive0"),
+            to_scene,
+            mesh,
+            material: None,
+        }
+    }
+
+    fn uvs(mesh: &Mesh) -> Vec<[f32; 2]> {
+        match mesh.attribute(Mesh::ATTRIBUTE_UV_1) {
+            Some(VertexAttributeValues::Float32x2(uvs)) => uvs.clone(),
+            other => panic!("no UV 1: {other:?}"),
+        }
+    }
+
+    /// Each entity finds its own placement whatever the order; UV 1 holds
+    /// relight's atlas corners, the mirrored node's in swapped order.
+    #[test]
+    fn entities_find_their_placements_and_corners() {
+        let (scene, atlas) = two_placements();
+        let quad = bevy_quad();
+        let mirror = Mat4::from_translation(Vec3::new(6.0, 0.0, 0.0))
+            * Mat4::from_scale(Vec3::new(-1.0, 1.0, 1.0));
+        let place = Mat4::from_translation(Vec3::new(2.0, 0.0, 0.0));
+        let found = [entity(1, &quad, mirror), entity(2, &quad, place)];
+        let adoption = adopt_meshes(&scene, &atlas, &found).unwrap();
+        assert_eq!(adoption.meshes.len(), 2);
+        let size = Vec2::new(atlas.width as f32, atlas.height as f32);
+        let atlas_uv = |triangle: usize, corner: usize| {
+            (Vec2::from_array(atlas.triangle_uvs[triangle][corner].to_array()) / size).to_array()
+        };
+        let mirrored = uvs(&adoption.meshes[0].mesh);
+        assert_eq!(mirrored.len(), 6);
+        // The dropped triangle gets zeros; the next is scene triangle 2
+        // with corners 1 and 2 swapped.
+        assert_eq!(&mirrored[..3], &[[0.0, 0.0]; 3]);
+        assert_eq!(
+            mirrored[3..],
+            [atlas_uv(2, 0), atlas_uv(2, 2), atlas_uv(2, 1)]
+        );
+        let placed = uvs(&adoption.meshes[1].mesh);
+        let expected: Vec<[f32; 2]> = (0..2)
+            .flat_map(|triangle| (0..3).map(move |corner| (triangle, corner)))
+            .map(|(triangle, corner)| atlas_uv(triangle, corner))
+            .collect();
+        assert_eq!(placed, expected);
+        // Bevy's shader needs UV 0 where UV 1 is.
+        assert!(adoption.meshes[1]
+            .mesh
+            .contains_attribute(Mesh::ATTRIBUTE_UV_0));
+    }
+
+    #[test]
+    fn a_different_mesh_or_place_is_an_error_and_other_primitives_are_skipped() {
+        let (scene, atlas) = two_placements();
+        let place = Mat4::from_translation(Vec3::new(2.0, 0.0, 0.0));
+        let mut moved = bevy_quad();
+        if let Some(VertexAttributeValues::Float32x3(positions)) =
+            moved.attribute_mut(Mesh::ATTRIBUTE_POSITION)
+        {
+            positions[2][2] = 0.1;
+        }
+        let message = adopt_meshes(&scene, &atlas, &[entity(1, &moved, place)])
+            .err()
+            .unwrap();
+        assert!(message.contains("same file"), "{message}");
+        let quad = bevy_quad();
+        let nowhere = Mat4::from_translation(Vec3::new(9.0, 0.0, 0.0));
+        let message = adopt_meshes(&scene, &atlas, &[entity(1, &quad, nowhere)])
+            .err()
+            .unwrap();
+        assert!(message.contains("no node"), "{message}");
+        let mut other = entity(1, &quad, place);
+        other.label = Some("Mesh1/Primitive0");
+        let adoption = adopt_meshes(&scene, &atlas, &[other]).unwrap();
+        assert!(adoption.meshes.is_empty() && adoption.skipped.len() == 1);
+    }
+
+    #[test]
+    fn lights_match_by_kind_and_place() {
+        let (mut scene, _) = two_placements();
+        let point = |x: f32| Light::Point {
+            position: relight_core::Vec3::new(x, 0.5, 0.5),
+            intensity: relight_core::Vec3::ONE,
+        };
+        scene.lights = vec![point(1.0), point(3.0)];
+        let found = [point(3.0), point(1.0), point(7.0)];
+        assert_eq!(match_lights(&scene, &found), vec![Some(1), Some(0), None]);
+    }
 
     #[test]
     fn primitive_labels_parse() {
