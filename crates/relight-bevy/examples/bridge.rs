@@ -3,10 +3,10 @@
 //! Bevy's images) and the GI update's stages on the worker, as medians.
 //!
 //! cargo run --release -p relight-bevy --example bridge -- SCENE.toml \
-//!     --technique T [--bake F] [--frames N]
+//!     --technique T [--bake F] [--frames N] [--fps F] [--single-threaded-schedules]
 
 use clap::Parser;
-use relight_bevy::snapshot::run_bridge;
+use relight_bevy::snapshot::{run_bridge, BridgeSettings};
 use relight_bevy::RelightScene;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -29,6 +29,9 @@ struct Args {
     /// Irradiance-volume voxels along the longest side (0: none).
     #[arg(long, default_value_t = 16)]
     volume_cells: u32,
+    /// Run Bevy's schedules on the main thread instead of its task pools.
+    #[arg(long)]
+    single_threaded_schedules: bool,
 }
 
 fn median(mut values: Vec<f64>) -> f64 {
@@ -46,7 +49,14 @@ fn main() -> ExitCode {
     } else {
         Duration::ZERO
     };
-    let run = match run_bridge(&scene, 3, args.frames, interval, Duration::from_secs(3600)) {
+    let settings = BridgeSettings {
+        warm_up: 3,
+        gi_updates: args.frames,
+        frame_interval: interval,
+        timeout: Duration::from_secs(3600),
+        single_threaded_schedules: args.single_threaded_schedules,
+    };
+    let run = match run_bridge(&scene, &settings) {
         Ok(run) => run,
         Err(message) => {
             eprintln!("error: {message}");

@@ -267,21 +267,49 @@ pub struct BridgeRun {
     pub frame_ms: Vec<f64>,
 }
 
+/// How [`run_bridge`] runs the app.
+#[derive(Clone, Debug)]
+pub struct BridgeSettings {
+    /// GI updates shown before measuring.
+    pub warm_up: u64,
+    /// GI updates measured.
+    pub gi_updates: u64,
+    /// Frames start this far apart (an app synchronised to its display,
+    /// whose main thread waits between frames); `Duration::ZERO` runs them
+    /// back to back.
+    pub frame_interval: Duration,
+    pub timeout: Duration,
+    /// Run every Bevy schedule, main and render world, on the main thread
+    /// (Bevy's `SingleThreadedExecutor`) instead of dispatching systems to
+    /// the task pools: an app's choice that leaves the worker's threads
+    /// fewer wake-ups to be preempted by on few cores.
+    pub single_threaded_schedules: bool,
+}
+
 /// Runs `scene` headless (no camera: what the bridge costs does not
 /// depend on what is drawn) until `gi_updates` updates are shown after
 /// `warm_up` of them, moving its lights every frame along `relight
 /// bench`'s orbit (a turn every `2 gi_updates` frames) so that each update
-/// has new lights in the places `relight bench` puts them. Frames start every `frame_interval`
-/// (an app synchronised to its display, whose main thread waits between
-/// frames); `Duration::ZERO` runs them back to back.
-pub fn run_bridge(
-    scene: &RelightScene,
-    warm_up: u64,
-    gi_updates: u64,
-    frame_interval: Duration,
-    timeout: Duration,
-) -> Result<BridgeRun, String> {
+/// has new lights in the places `relight bench` puts them.
+pub fn run_bridge(scene: &RelightScene, settings: &BridgeSettings) -> Result<BridgeRun, String> {
+    let BridgeSettings {
+        warm_up,
+        gi_updates,
+        frame_interval,
+        timeout,
+        single_threaded_schedules,
+    } = settings.clone();
     let mut app = headless_app(None);
+    if single_threaded_schedules {
+        use bevy::ecs::schedule::{Schedules, SingleThreadedExecutor};
+        let single_threaded = |world: &mut World| {
+            for (_, schedule) in world.resource_mut::<Schedules>().iter_mut() {
+                schedule.set_executor(SingleThreadedExecutor::new());
+            }
+        };
+        single_threaded(app.world_mut());
+        single_threaded(app.sub_app_mut(bevy::render::RenderApp).world_mut());
+    }
     let scene_entity = app.world_mut().spawn(scene.clone()).id();
     let started = Instant::now();
     let mut run = BridgeRun::default();
