@@ -520,6 +520,7 @@ fn adopt_gltf_scenes(
     mut commands: Commands,
     mut waiting: AwaitingScenes,
     spawner: Option<Res<bevy::world_serialization::WorldInstanceSpawner>>,
+    asset_server: Res<AssetServer>,
     children: Query<&Children>,
     mesh_entities: AdoptableMeshes,
     light_entities: RelightLightCandidates,
@@ -527,15 +528,28 @@ fn adopt_gltf_scenes(
     mut materials: ResMut<Assets<StandardMaterial>>,
     mut images: ResMut<Assets<Image>>,
 ) {
-    for (entity, settings, awaiting, root, mut status, mut stats, instance) in &mut waiting {
+    for (entity, settings, awaiting, root, mut status, mut stats, (asset, instance)) in &mut waiting
+    {
+        let problem = match (asset, instance) {
+            (None, _) => Some(
+                "RelightScene::adopt_gltf needs a WorldAssetRoot (the glTF scene Bevy loads) on the same entity"
+                    .to_string(),
+            ),
+            (Some(asset), None) => match asset_server.load_state(&asset.0) {
+                bevy::asset::LoadState::Failed(error) => {
+                    Some(format!("Bevy could not load the glTF to adopt: {error}"))
+                }
+                // Still loading: the instance comes once it is loaded.
+                _ => None,
+            },
+            (Some(_), Some(_)) => None,
+        };
+        if let Some(message) = problem {
+            commands.entity(entity).remove::<AwaitingGltf>();
+            fail(&mut status, message);
+            continue;
+        }
         let Some(instance) = instance else {
-            if settings.adopt {
-                commands.entity(entity).remove::<AwaitingGltf>();
-                fail(
-                    &mut status,
-                    "RelightScene::adopt_gltf needs a WorldAssetRoot (the glTF scene Bevy loads) on the same entity".into(),
-                );
-            }
             continue;
         };
         if !spawner
@@ -671,7 +685,10 @@ type AwaitingScenes<'w, 's> = Query<
         &'static GlobalTransform,
         &'static mut RelightStatus,
         &'static mut RelightStats,
-        Option<&'static bevy::world_serialization::WorldInstance>,
+        (
+            Option<&'static WorldAssetRoot>,
+            Option<&'static bevy::world_serialization::WorldInstance>,
+        ),
     ),
 >;
 
