@@ -3,7 +3,8 @@
 //! Bevy's images) and the GI update's stages on the worker, as medians.
 //!
 //! cargo run --release -p relight-bevy --example bridge -- SCENE.toml \
-//!     --technique T [--bake F] [--frames N] [--fps F] [--single-threaded-schedules]
+//!     --technique T [--bake F] [--frames N] [--fps F] [--worker-threads N]
+//!     [--single-threaded-schedules]
 
 use clap::Parser;
 use relight_bevy::snapshot::{run_bridge, BridgeSettings};
@@ -29,6 +30,9 @@ struct Args {
     /// Irradiance-volume voxels along the longest side (0: none).
     #[arg(long, default_value_t = 16)]
     volume_cells: u32,
+    /// Threads of the GI update (0: every core).
+    #[arg(long, default_value_t = 0)]
+    worker_threads: usize,
     /// Run Bevy's schedules on the main thread instead of its task pools.
     #[arg(long)]
     single_threaded_schedules: bool,
@@ -44,6 +48,7 @@ fn main() -> ExitCode {
     let mut scene = RelightScene::new(&args.scene).technique(&args.technique);
     scene.bake = args.bake.clone();
     scene.volume_cells = args.volume_cells;
+    scene.worker_threads = args.worker_threads;
     let interval = if args.fps > 0.0 {
         Duration::from_secs_f64(1.0 / args.fps)
     } else {

@@ -76,6 +76,12 @@ pub struct RelightScene {
     /// Refresh the volume every this many GI updates (a refresh costs
     /// about 100 ms on Sponza's 16 x 8 x 7 voxels, on the worker).
     pub volume_every: u32,
+    /// Threads of the GI update; 0: rayon's global pool (every core).
+    /// Fewer leave the app's own threads cores of their own: on two
+    /// cores, one worker thread runs its update as fast as `relight bench
+    /// --threads 1` does while Bevy renders, where two share the cores
+    /// with Bevy's task pools and slow down by 7-30 % (see the README).
+    pub worker_threads: usize,
     /// Spawn the scene's lights as Bevy lights (with [`RelightLight`]).
     pub spawn_lights: bool,
     /// The lightmap holds indirect light only, without the static
@@ -105,6 +111,7 @@ impl RelightScene {
             bake: None,
             volume_cells: 16,
             volume_every: 10,
+            worker_threads: 0,
             spawn_lights: true,
             indirect_only: false,
             adopt: false,
@@ -861,7 +868,25 @@ fn start_running(
         static_direct,
     };
     let jobs = mailbox.clone();
-    std::thread::spawn(move || worker.run(technique, &jobs, done_sender));
+    let threads = settings.worker_threads;
+    let pool = (threads > 0).then(|| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|index| format!("relight GI {index}"))
+            .build()
+    });
+    std::thread::spawn(move || match pool {
+        // The worker loop runs on one of the pool's threads, so the
+        // technique's parallel loops use that pool.
+        Some(Ok(pool)) => pool.install(|| worker.run(technique, &jobs, done_sender)),
+        Some(Err(error)) => {
+            let _ = done_sender.send(Err(format!(
+                "could not start {} GI worker threads: {error}",
+                threads
+            )));
+        }
+        None => worker.run(technique, &jobs, done_sender),
+    });
     commands.entity(entity).insert(Worker {
         mailbox,
         done: Mutex::new(done),
