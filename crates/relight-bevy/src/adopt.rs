@@ -70,11 +70,7 @@ pub(crate) fn adopt_meshes(
             .or_default()
             .push(index);
     }
-    let (lo, hi) = scene.mesh.bounds();
-    // Float error of composing node transforms in Bevy's and relight's
-    // glam, relative to the scene's size; a different mesh is off by far
-    // more.
-    let tolerance = 1e-4 * (hi - lo).length().max(1e-3);
+    let tolerance = place_tolerance(scene);
     let size = Vec2::new(atlas.width as f32, atlas.height as f32);
     let mut used = vec![false; scene.gltf_primitives.len()];
     let mut adoption = MeshAdoption {
@@ -152,6 +148,14 @@ pub(crate) fn adopt_meshes(
         });
     }
     Ok(adoption)
+}
+
+/// How far apart Bevy's and relight's copies of one point may be: the
+/// float error of composing node transforms in the two glams, relative to
+/// the scene's size; a different mesh or light is off by far more.
+fn place_tolerance(scene: &Scene) -> f32 {
+    let (lo, hi) = scene.mesh.bounds();
+    1e-4 * (hi - lo).length().max(1e-3)
 }
 
 /// `Mesh{m}/Primitive{p}` as (m, p).
@@ -253,8 +257,7 @@ fn corner_lightmap_uvs(
 /// the scene light it is, matched by kind, place and direction; each scene
 /// light at most once.
 pub(crate) fn match_lights(scene: &Scene, found: &[Light]) -> Vec<Option<usize>> {
-    let (lo, hi) = scene.mesh.bounds();
-    let tolerance = 1e-4 * (hi - lo).length().max(1e-3);
+    let tolerance = place_tolerance(scene);
     let mut taken = vec![false; scene.lights.len()];
     found
         .iter()

@@ -429,9 +429,7 @@ fn finish_loading(
         &mut RelightStatus,
         &mut RelightStats,
     )>,
-    mut meshes: ResMut<Assets<Mesh>>,
-    mut materials: ResMut<Assets<StandardMaterial>>,
-    mut images: ResMut<Assets<Image>>,
+    mut assets: SceneAssets,
 ) {
     for (entity, settings, state, mut status, mut stats) in &mut loading {
         let message = state.result.lock().unwrap().try_recv();
@@ -466,12 +464,7 @@ fn finish_loading(
                 .insert(AwaitingGltf(Mutex::new(Some(loaded))));
             continue;
         }
-        let lightmap = images.add(empty_lightmap(&loaded.context));
-        let mut assets = SceneAssets {
-            meshes: &mut meshes,
-            materials: &mut materials,
-            images: &mut images,
-        };
+        let lightmap = assets.images.add(empty_lightmap(&loaded.context));
         start_running(
             &mut commands,
             entity,
@@ -491,10 +484,11 @@ fn finish_loading(
 struct AwaitingGltf(Mutex<Option<Loaded>>);
 
 /// The assets the plugin adds while starting a scene.
-struct SceneAssets<'a> {
-    meshes: &'a mut Assets<Mesh>,
-    materials: &'a mut Assets<StandardMaterial>,
-    images: &'a mut Assets<Image>,
+#[derive(bevy::ecs::system::SystemParam)]
+struct SceneAssets<'w> {
+    meshes: ResMut<'w, Assets<Mesh>>,
+    materials: ResMut<'w, Assets<StandardMaterial>>,
+    images: ResMut<'w, Assets<Image>>,
 }
 
 /// What the app's own entities already stand for.
@@ -531,9 +525,7 @@ fn adopt_gltf_scenes(
     children: Query<&Children>,
     mesh_entities: AdoptableMeshes,
     light_entities: RelightLightCandidates,
-    mut meshes: ResMut<Assets<Mesh>>,
-    mut materials: ResMut<Assets<StandardMaterial>>,
-    mut images: ResMut<Assets<Image>>,
+    mut assets: SceneAssets,
 ) {
     for (entity, settings, awaiting, root, mut status, mut stats, (asset, instance)) in &mut waiting
     {
@@ -580,7 +572,7 @@ fn adopt_gltf_scenes(
                     name: name.map(|name| name.as_str()),
                     label: mesh.0.path().and_then(|path| path.label()),
                     to_scene: Mat4::from(to_scene * transform.affine()),
-                    mesh: meshes.get(&mesh.0)?,
+                    mesh: assets.meshes.get(&mesh.0)?,
                     material: material.map(|material| material.0.clone()),
                 })
             })
@@ -611,7 +603,7 @@ fn adopt_gltf_scenes(
                     continue;
                 };
                 if shaded.insert(handle.id()) {
-                    if let Some(mut bevy_material) = materials.get_mut(handle) {
+                    if let Some(mut bevy_material) = assets.materials.get_mut(handle) {
                         convert::relight_shading(
                             &mut bevy_material,
                             &loaded.context.scene.materials[material as usize],
@@ -620,10 +612,10 @@ fn adopt_gltf_scenes(
                 }
             }
         }
-        let lightmap = images.add(empty_lightmap(&loaded.context));
+        let lightmap = assets.images.add(empty_lightmap(&loaded.context));
         for adopted in adoption.meshes {
             commands.entity(adopted.entity).insert((
-                Mesh3d(meshes.add(adopted.mesh)),
+                Mesh3d(assets.meshes.add(adopted.mesh)),
                 Lightmap {
                     image: lightmap.clone(),
                     ..default()
@@ -662,11 +654,6 @@ fn adopt_gltf_scenes(
                 }
             }
         }
-        let mut assets = SceneAssets {
-            meshes: &mut meshes,
-            materials: &mut materials,
-            images: &mut images,
-        };
         start_running(
             &mut commands,
             entity,
