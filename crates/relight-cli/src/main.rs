@@ -19,6 +19,7 @@ mod bench;
 mod compare;
 mod converge;
 mod progress;
+mod robustness;
 mod techniques;
 
 use anyhow::{bail, Context, Result};
@@ -247,6 +248,18 @@ enum Command {
         #[command(flatten)]
         settings: converge::ConvergeSettings,
     },
+    /// Measure a technique over generated variants (`relight gen variants`)
+    /// against the path tracer: each variant's 8x8-tile error, light in view
+    /// and the tiles around objects' feet, and per kind of variant the
+    /// median, 90th percentile and worst against the kind's bound.
+    Robustness {
+        #[command(flatten)]
+        technique: TechniqueOptions,
+        #[command(flatten)]
+        options: SceneOptions,
+        #[command(flatten)]
+        settings: robustness::RobustnessSettings,
+    },
     /// Compare every technique on every shipped scene into out/.
     Demo {
         /// Folder holding the shipped scenes (default: ./scenes).
@@ -270,6 +283,18 @@ enum GenKind {
     Atrium {
         #[arg(long, default_value_t = 100_000)]
         triangles: usize,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Rooms, two-room suites and halls modelled the many ways real models
+    /// are (one shell or a box per room; planes, solids or overlapping
+    /// walls; quads or fine triangles; objects on floors; lights near walls,
+    /// in corners and in shades): one folder per variant and variants.txt.
+    Variants {
+        #[arg(long, default_value_t = relight_scene::generate::variants::VARIANTS_DEFAULT_SEED)]
+        seed: u64,
+        #[arg(long, default_value_t = 12)]
+        count: usize,
         #[arg(short, long)]
         output: PathBuf,
     },
@@ -806,6 +831,16 @@ fn run(cli: Cli) -> Result<()> {
             say!("{report}");
             Ok(())
         }
+        Command::Robustness {
+            technique,
+            options,
+            settings,
+        } => {
+            let report =
+                robustness::run(&technique, options.context_settings()?, &settings, quiet)?;
+            say!("{report}");
+            Ok(())
+        }
         Command::Demo {
             scenes,
             settings,
@@ -816,6 +851,25 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             let scene = relight_scene::generate::write_atrium(&output, triangles)?;
             say!("wrote {}", scene.display());
+            Ok(())
+        }
+        Command::Gen {
+            kind:
+                GenKind::Variants {
+                    seed,
+                    count,
+                    output,
+                },
+        } => {
+            let written = relight_scene::generate::variants::write_variants(&output, seed, count)?;
+            for (scene, variant) in &written {
+                say!("{}  {}", scene.display(), variant.description());
+            }
+            say!(
+                "wrote {} variants and {}",
+                written.len(),
+                output.join("variants.txt").display()
+            );
             Ok(())
         }
     }

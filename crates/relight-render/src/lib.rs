@@ -11,6 +11,7 @@ pub mod convergence;
 pub mod image;
 pub mod metrics;
 pub mod render;
+pub mod robustness;
 pub mod study;
 
 pub use image::{Image, ImageError};

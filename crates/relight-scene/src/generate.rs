@@ -26,6 +26,8 @@ use std::f32::consts::{PI, TAU};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+pub mod variants;
+
 /// Smallest and largest budgets the generator accepts.
 pub const ATRIUM_MIN_TRIANGLES: usize = 5_000;
 pub const ATRIUM_MAX_TRIANGLES: usize = 20_000_000;

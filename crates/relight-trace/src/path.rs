@@ -360,6 +360,24 @@ impl CameraRays {
             t_max: f32::INFINITY,
         }
     }
+
+    /// The pixel whose rays pass through `point`, when the point is in
+    /// front of the camera and inside the image: the inverse of [`Self::ray`].
+    pub fn pixel_of(&self, point: Vec3) -> Option<[u32; 2]> {
+        let offset = point - self.eye;
+        let depth = offset.dot(self.forward);
+        if depth <= 1e-6 {
+            return None;
+        }
+        let aspect = self.width as f32 / self.height as f32;
+        let ndc_x = offset.dot(self.right) / (depth * self.tan_half_fov * aspect);
+        let ndc_y = offset.dot(self.up) / (depth * self.tan_half_fov);
+        let x = (ndc_x + 1.0) * 0.5 * self.width as f32;
+        let y = (1.0 - ndc_y) * 0.5 * self.height as f32;
+        let inside =
+            (0.0..self.width as f32).contains(&x) && (0.0..self.height as f32).contains(&y);
+        inside.then_some([x as u32, y as u32])
+    }
 }
 
 #[cfg(test)]
@@ -599,5 +617,32 @@ mod tests {
         assert!(left.direction.x > 0.0 && left.direction.y > 0.0);
         let right = rays.ray(3, 1, Vec2::splat(0.5));
         assert!(right.direction.x < 0.0 && right.direction.y < 0.0);
+    }
+
+    #[test]
+    fn pixel_of_inverts_the_camera_ray() {
+        let camera = relight_scene::Camera {
+            eye: Vec3::new(1.0, 2.0, 3.0),
+            target: Vec3::new(4.0, 1.0, -2.0),
+            up: Vec3::Y,
+            fov_y_degrees: 60.0,
+            resolution: [40, 30],
+        };
+        let rays = CameraRays::new(&camera);
+        for (x, y) in [(0, 0), (39, 29), (17, 5), (20, 15)] {
+            let ray = rays.ray(x, y, Vec2::splat(0.5));
+            let point = ray.origin + ray.direction * 3.7;
+            assert_eq!(rays.pixel_of(point), Some([x, y]));
+        }
+        // Behind the camera, and outside the image's sides.
+        assert_eq!(
+            rays.pixel_of(camera.eye - (camera.target - camera.eye)),
+            None
+        );
+        let far_right = rays.ray(39, 15, Vec2::new(0.99, 0.5));
+        assert_eq!(
+            rays.pixel_of(far_right.origin + (far_right.direction + rays.right) * 2.0),
+            None
+        );
     }
 }
