@@ -615,3 +615,72 @@ fn cluster_job_files_bake_and_merge() {
         "Kubernetes merge"
     );
 }
+
+#[test]
+fn gen_variants_writes_scenes_that_robustness_measures() {
+    let folder = tempfile::tempdir().unwrap();
+    let variants = folder.path().join("variants");
+    let text = run_ok(
+        relight()
+            .args(["gen", "variants", "-q", "--seed", "7", "--count", "3", "-o"])
+            .arg(&variants),
+    );
+    assert!(text.contains("wrote 3 variants"), "{text}");
+    for name in ["000-room", "001-two-rooms", "002-hall"] {
+        let info = run_ok(
+            relight()
+                .args(["info", "-q"])
+                .arg(variants.join(name).join("scene.toml")),
+        );
+        assert!(info.contains("receivers"), "{name}: {info}");
+    }
+    assert!(variants.join("variants.txt").exists());
+    // The same family through the study, small: two variants, few paths.
+    let json = folder.path().join("robustness.json");
+    let report = run_ok(
+        relight()
+            .args([
+                "robustness",
+                "-q",
+                "-t",
+                "lightskin",
+                "--seed",
+                "7",
+                "--variants",
+                "2",
+                "--shrink",
+                "4",
+                "--reference-spp",
+                "4",
+                "--reference-samples",
+                "4",
+                "--cache",
+            ])
+            .arg(folder.path().join("cache"))
+            .arg("--keep")
+            .arg(folder.path().join("kept"))
+            .arg("--images")
+            .arg(folder.path().join("images"))
+            .arg("--json")
+            .arg(&json),
+    );
+    assert!(
+        report.contains("| room | 1 |") && report.contains("| two-rooms | 1 |"),
+        "{report}"
+    );
+    let parsed: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let rows = parsed["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(rows[0]["variant"], "000-room");
+    assert!(rows[0]["image_tiles"].as_f64().is_some_and(f64::is_finite));
+    assert!(folder.path().join("images/000-room-reference.png").exists());
+    let error = run_err(relight().args(["robustness", "-q", "-t", "reference", "--variants", "1"]));
+    assert!(error.contains("name another technique"), "{error}");
+    let error = run_err(
+        relight()
+            .args(["gen", "variants", "-q", "--count", "0", "-o"])
+            .arg(&variants),
+    );
+    assert!(error.contains("choose between 1 and"), "{error}");
+}
