@@ -113,6 +113,8 @@ pub fn run(
     let pairs = technique.pairs()?;
     let bars = Bars::new(quiet);
     let cache = settings.cache.clone().unwrap_or_else(std::env::temp_dir);
+    std::fs::create_dir_all(&cache)
+        .with_context(|| format!("{}: cannot create the reference cache", cache.display()))?;
     let scratch;
     let keep = match &settings.keep {
         Some(folder) => folder.clone(),

@@ -26,6 +26,22 @@ fn variants_are_deterministic() {
 }
 
 #[test]
+fn material_names_are_unique() {
+    for index in 0..COUNT {
+        let generated = variant(SEED, index);
+        let mut names: Vec<&str> = generated
+            .mtl
+            .lines()
+            .filter_map(|line| line.strip_prefix("newmtl "))
+            .collect();
+        let count = names.len();
+        names.sort_unstable();
+        names.dedup();
+        assert_eq!(names.len(), count, "{}", generated.name());
+    }
+}
+
+#[test]
 fn variants_cover_every_modelling_choice() {
     let all: Vec<_> = (0..COUNT).map(|index| variant(SEED, index)).collect();
     for kind in VariantKind::ALL {

@@ -374,9 +374,12 @@ struct Builder {
 }
 
 impl Builder {
+    /// A new material; its name gets the material's number, since MTL
+    /// names must be unique (objects and shades recur).
     fn material(&mut self, name: &str, albedo: [f32; 3]) -> usize {
-        self.materials.push((name.to_string(), albedo));
-        self.materials.len() - 1
+        let index = self.materials.len();
+        self.materials.push((format!("{name}{index}"), albedo));
+        index
     }
 
     /// A rectangle in the plane `axis = level`, facing +axis when
@@ -688,7 +691,7 @@ fn array(value: Vec3) -> String {
 
 /// Wall, floor and ceiling materials of albedo about `albedo`, each with a
 /// slight tint, and now and then one coloured wall.
-fn room_materials(rng: &mut Random, builder: &mut Builder, albedo: f32, tag: &str) -> [usize; 3] {
+fn room_materials(rng: &mut Random, builder: &mut Builder, albedo: f32) -> [usize; 3] {
     let tint = |rng: &mut Random, level: f32| {
         let warm = rng.range(-0.08, 0.08);
         [
@@ -712,9 +715,9 @@ fn room_materials(rng: &mut Random, builder: &mut Builder, albedo: f32, tag: &st
     let floor = tint(rng, floor_level);
     let ceiling = tint(rng, albedo.max(0.3));
     [
-        builder.material(&format!("{tag}wall"), wall),
-        builder.material(&format!("{tag}floor"), floor),
-        builder.material(&format!("{tag}ceiling"), ceiling),
+        builder.material("wall", wall),
+        builder.material("floor", floor),
+        builder.material("ceiling", ceiling),
     ]
 }
 
@@ -743,7 +746,7 @@ fn place_objects(
     largest: f32,
 ) -> Vec<Foot> {
     let mut feet = Vec::new();
-    for object in 0..count {
+    for _ in 0..count {
         let colour = {
             let level = rng.range(0.1, 0.9);
             let hue = rng.below(4);
@@ -754,7 +757,7 @@ fn place_objects(
                 _ => [level * 0.5, level, level * 0.45],
             }
         };
-        let material = builder.material(&format!("object{object}"), colour);
+        let material = builder.material("object", colour);
         let extent = room.high - room.low;
         for _attempt in 0..24 {
             let size = Vec3::new(
@@ -999,7 +1002,7 @@ fn room(rng: &mut Random, builder: &mut Builder, walls: Walls, albedo: f32) -> P
         rng.range(2.2, 3.6),
         rng.range(2.0, 8.0),
     );
-    let materials = room_materials(rng, builder, albedo, "");
+    let materials = room_materials(rng, builder, albedo);
     let thickness = wall_thickness(rng, walls);
     let overhang = rng.range(0.05, 0.3);
     builder.enclosure(
@@ -1045,7 +1048,7 @@ fn two_rooms(
     let height = rng.range(2.3, 3.4);
     let width = rng.range(2.5, 6.0);
     let (length_a, length_b) = (rng.range(2.5, 6.0), rng.range(2.5, 6.0));
-    let materials = room_materials(rng, builder, albedo, "");
+    let materials = room_materials(rng, builder, albedo);
     let thickness = wall_thickness(rng, walls);
     let overhang = rng.range(0.05, 0.3);
     // The partition (or the gap between two boxes) between x = length_a and
@@ -1183,7 +1186,7 @@ fn hall(rng: &mut Random, builder: &mut Builder, walls: Walls, albedo: f32) -> P
         rng.range(5.0, 15.0).min(length * 0.6),
         rng.range(0.35, 0.8) * length,
     );
-    let materials = room_materials(rng, builder, albedo, "");
+    let materials = room_materials(rng, builder, albedo);
     let thickness = wall_thickness(rng, walls).max(if walls == Walls::Solids { 0.3 } else { 0.0 });
     let overhang = rng.range(0.1, 0.5);
     // Small windows along the x = 0 wall; in that plane a runs along y and
