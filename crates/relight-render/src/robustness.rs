@@ -71,7 +71,7 @@ impl VariantCase {
 /// How far from a foot's edge the floor counts as its surroundings: a
 /// halo larger than a texel (5-13 cm at the variants' default lightmaps)
 /// shows within it.
-const CONTACT_REACH: f32 = 0.15;
+pub const CONTACT_REACH: f32 = 0.15;
 
 /// The tiles of the camera image (row-major, `tile` pixels a side) that see
 /// floor within [`CONTACT_REACH`] of one of `feet`: points on rings around
