@@ -24,30 +24,38 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
+/// The technique's image and the path-traced reference it is measured
+/// against: what `relight converge` and `relight robustness` share.
 #[derive(clap::Args, Clone, Debug)]
-pub struct ConvergeSettings {
-    /// Parameter to sweep, repeatable: --sweep key=v1,v2,... (every
-    /// combination of the sweeps is measured).
-    #[arg(long = "sweep", value_name = "KEY=V1,V2,...")]
-    pub sweeps: Vec<String>,
+pub struct MeasureSettings {
     /// Primary rays per pixel for the technique's image.
     #[arg(long, default_value_t = 4)]
     pub spp: u32,
     /// Paths per pixel for the reference image.
     #[arg(long, default_value_t = 256)]
     pub reference_spp: u32,
-    /// Paths per receiver for the reference lightmap.
+    /// Paths per receiver (and point in space) for the reference.
     #[arg(long, default_value_t = 256)]
     pub reference_samples: u32,
     /// Indirect bounces of the reference (a technique that computes fewer
     /// is measured against a reference limited to as many).
     #[arg(long, default_value_t = 64)]
     pub max_bounces: u32,
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
     /// Folder for cached references (default: the system's temporary folder).
     #[arg(long)]
     pub cache: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Clone, Debug)]
+pub struct ConvergeSettings {
+    /// Parameter to sweep, repeatable: --sweep key=v1,v2,... (every
+    /// combination of the sweeps is measured).
+    #[arg(long = "sweep", value_name = "KEY=V1,V2,...")]
+    pub sweeps: Vec<String>,
+    #[command(flatten)]
+    pub measure: MeasureSettings,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
     /// Write the indirect-only images of the reference and of every setting
     /// here, with a map of each setting's 8x8-tile light ratio (red: too
     /// bright, blue: too dark, full colour at twice or half).
@@ -155,7 +163,11 @@ pub fn run(
         .collect::<Result<Vec<_>>>()?;
     let fixed = technique.pairs()?;
     let bars = Bars::new(quiet);
-    let cache = settings.cache.clone().unwrap_or_else(std::env::temp_dir);
+    let cache = settings
+        .measure
+        .cache
+        .clone()
+        .unwrap_or_else(std::env::temp_dir);
     if let Some(folder) = &settings.images {
         std::fs::create_dir_all(folder)
             .with_context(|| format!("{}: cannot create the images folder", folder.display()))?;
@@ -198,7 +210,7 @@ pub fn run(
             moving_mesh_poses: None,
         })?;
         let update_ms = instance.timings().total().as_secs_f64() * 1e3;
-        let bounces = instance.reference_bounces(settings.max_bounces);
+        let bounces = instance.reference_bounces(settings.measure.max_bounces);
         let reference = references.entry(bounces).or_insert_with(|| {
             let path_settings = PathSettings {
                 max_bounces: bounces,
@@ -209,8 +221,8 @@ pub fn run(
                 context,
                 &split.space,
                 path_settings,
-                settings.reference_samples,
-                settings.reference_spp,
+                settings.measure.reference_samples,
+                settings.measure.reference_spp,
                 Some(&cache),
                 &bars,
             )
@@ -220,7 +232,7 @@ pub fn run(
             instance.as_ref(),
             reference,
             &split,
-            settings.spp,
+            settings.measure.spp,
             &bars,
         );
         if let Some(folder) = &settings.images {
@@ -268,7 +280,7 @@ pub fn run(
     Ok(report)
 }
 
-fn percent(value: f64) -> String {
+pub(crate) fn percent(value: f64) -> String {
     if value.is_nan() {
         "-".to_string()
     } else {
@@ -307,8 +319,8 @@ impl Study<'_> {
         visible.len(),
         visible.iter().filter(|&&seen| seen).count(),
         space_points,
-        settings.reference_samples,
-        settings.reference_spp,
+        settings.measure.reference_samples,
+        settings.measure.reference_spp,
         settings.seed
     )?;
         for (bounces, reference) in references {
@@ -427,8 +439,8 @@ impl Study<'_> {
             "technique": technique,
             "receivers": visible.len(),
             "visible_receivers": visible.iter().filter(|&&seen| seen).count(),
-            "reference_samples": settings.reference_samples,
-            "reference_spp": settings.reference_spp,
+            "reference_samples": settings.measure.reference_samples,
+            "reference_spp": settings.measure.reference_spp,
             "seed": settings.seed,
             "reference_noise": references.iter().map(|(bounces, reference)| {
                 let noise = reference.noise(visible);

@@ -11,6 +11,7 @@
 //! variant, the median, 90th percentile and worst against the kind's bound,
 //! and writes the worst variants' images.
 
+use crate::converge::{percent, MeasureSettings};
 use crate::progress::Bars;
 use crate::techniques;
 use anyhow::{bail, Context, Result};
@@ -40,21 +41,8 @@ pub struct RobustnessSettings {
     /// Camera images at 1/N of the variants' 320x240 on each side.
     #[arg(long, default_value_t = 2)]
     pub shrink: u32,
-    /// Primary rays per pixel for the technique's image.
-    #[arg(long, default_value_t = 4)]
-    pub spp: u32,
-    /// Paths per pixel for the reference image.
-    #[arg(long, default_value_t = 256)]
-    pub reference_spp: u32,
-    /// Paths per receiver and point in space for the reference.
-    #[arg(long, default_value_t = 256)]
-    pub reference_samples: u32,
-    /// Indirect bounces of the reference.
-    #[arg(long, default_value_t = 64)]
-    pub max_bounces: u32,
-    /// Folder for cached references (default: the system's temporary folder).
-    #[arg(long)]
-    pub cache: Option<PathBuf>,
+    #[command(flatten)]
+    pub measure: MeasureSettings,
     /// Keep the variants' files here (default: a temporary folder).
     #[arg(long)]
     pub keep: Option<PathBuf>,
@@ -112,7 +100,11 @@ pub fn run(
     }
     let pairs = technique.pairs()?;
     let bars = Bars::new(quiet);
-    let cache = settings.cache.clone().unwrap_or_else(std::env::temp_dir);
+    let cache = settings
+        .measure
+        .cache
+        .clone()
+        .unwrap_or_else(std::env::temp_dir);
     std::fs::create_dir_all(&cache)
         .with_context(|| format!("{}: cannot create the reference cache", cache.display()))?;
     let scratch;
@@ -164,7 +156,7 @@ pub fn run(
         })?;
         let update_ms = instance.timings().total().as_secs_f64() * 1e3;
         let split = Split::of(context);
-        let bounces = instance.reference_bounces(settings.max_bounces);
+        let bounces = instance.reference_bounces(settings.measure.max_bounces);
         let reference = ReferenceSet::cached(
             context,
             &split.space,
@@ -172,8 +164,8 @@ pub fn run(
                 max_bounces: bounces,
                 ..PathSettings::default()
             },
-            settings.reference_samples,
-            settings.reference_spp,
+            settings.measure.reference_samples,
+            settings.measure.reference_spp,
             Some(&cache),
             &bars,
         );
@@ -182,7 +174,7 @@ pub fn run(
             instance.as_ref(),
             &reference,
             &split,
-            settings.spp,
+            settings.measure.spp,
             &bars,
         );
         let contact = ContactError::of(&image, &reference.image, &case.contact_tiles);
@@ -261,14 +253,6 @@ fn tempfile_folder() -> Result<PathBuf> {
     Ok(folder)
 }
 
-fn percent(value: f64) -> String {
-    if value.is_nan() {
-        "-".to_string()
-    } else {
-        format!("{:.1} %", value * 100.0)
-    }
-}
-
 fn report(
     technique: &str,
     pairs: &[(String, String)],
@@ -295,7 +279,7 @@ fn report(
     writeln!(
         out,
         "Reference: {} paths per pixel, {} per receiver and point in space; images 1/{} of 320x240.\n",
-        settings.reference_spp, settings.reference_samples, settings.shrink
+        settings.measure.reference_spp, settings.measure.reference_samples, settings.shrink
     )?;
     writeln!(out, "| variant | triangles | receivers | image 8x8 tiles | bound | reference tile noise | visible lightmap | light in view | contact tiles | contact light | points in space | bake s | update ms |")?;
     writeln!(
@@ -403,8 +387,8 @@ fn json(technique: &str, settings: &RobustnessSettings, rows: &[Row]) -> serde_j
         "seed": settings.seed,
         "first": settings.first,
         "variants": settings.variants,
-        "reference_spp": settings.reference_spp,
-        "reference_samples": settings.reference_samples,
+        "reference_spp": settings.measure.reference_spp,
+        "reference_samples": settings.measure.reference_samples,
         "rows": rows.iter().map(|row| {
             let m = &row.measurement;
             serde_json::json!({
