@@ -6,6 +6,8 @@
 //! direct light from the shared service and indirect light from the
 //! technique; [`render::render_reference`] path traces the same split. Both
 //! return [`image::Image`]s that [`metrics`] compares and [`image`] writes.
+//! [`convergence`] and [`robustness`] measure a technique against the path
+//! tracer on one scene's settings and over generated scene variants.
 
 pub mod convergence;
 pub mod image;

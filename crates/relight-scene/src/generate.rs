@@ -1,4 +1,5 @@
-//! Procedural test scenes of any size: a Sponza-like atrium.
+//! Procedural test scenes of any size: a Sponza-like atrium, and in
+//! [`variants`] rooms and buildings modelled the many ways real models are.
 //!
 //! The atrium is a walled courtyard (30 m x 14 m) with two storeys of arcades
 //! along its long sides (columns, elliptical arches, gallery slabs), coloured
