@@ -16,7 +16,7 @@ use anyhow::{bail, Context, Result};
 use relight_render::convergence::{Measurement, ReceiverClass, ReferenceSet, Split, TILE};
 use relight_render::metrics::tile_ratio_image;
 use relight_render::study::split_top_level;
-use relight_technique::{Frame, SceneContext};
+use relight_technique::{Frame, Progress, SceneContext, Technique, TechniqueKind};
 use relight_trace::path::PathSettings;
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -44,6 +44,83 @@ pub struct MeasureSettings {
     /// Folder for cached references (default: the system's temporary folder).
     #[arg(long)]
     pub cache: Option<PathBuf>,
+}
+
+impl MeasureSettings {
+    /// The reference cache's folder, created if it is not there yet.
+    pub fn cache_folder(&self) -> Result<PathBuf> {
+        let cache = self.cache.clone().unwrap_or_else(std::env::temp_dir);
+        std::fs::create_dir_all(&cache)
+            .with_context(|| format!("{}: cannot create the reference cache", cache.display()))?;
+        Ok(cache)
+    }
+
+    /// The path-traced reference of `context` at `bounces` indirect bounces
+    /// with path seed `seed`, read from `cache` or traced and written there.
+    pub fn reference(
+        &self,
+        context: &SceneContext,
+        split: &Split,
+        bounces: u32,
+        seed: u64,
+        cache: &Path,
+        progress: &dyn Progress,
+    ) -> ReferenceSet {
+        ReferenceSet::cached(
+            context,
+            &split.space,
+            PathSettings {
+                max_bounces: bounces,
+                seed,
+                ..PathSettings::default()
+            },
+            self.reference_samples,
+            self.reference_spp,
+            Some(cache),
+            progress,
+        )
+    }
+}
+
+/// The technique a study (`command`) measures: any but the reference,
+/// baked by the study itself for every `unit`.
+pub(crate) fn studied_kind(
+    technique: &crate::TechniqueOptions,
+    command: &str,
+    unit: &str,
+) -> Result<&'static dyn TechniqueKind> {
+    let kind = techniques::find(&technique.technique)?;
+    if kind.name() == "reference" {
+        bail!("--technique reference is what {command} compares with; name another technique");
+    }
+    if technique.bake.is_some() {
+        bail!("{command} bakes every {unit} itself; drop --bake");
+    }
+    Ok(kind)
+}
+
+/// `kind` created on `context` from `payload` and updated once under the
+/// scene's lights, with that update's time in milliseconds; `what` names
+/// the setting or variant in errors.
+pub(crate) fn updated_technique(
+    kind: &dyn TechniqueKind,
+    context: &Arc<SceneContext>,
+    payload: Option<&[u8]>,
+    pairs: &[(String, String)],
+    progress: &dyn Progress,
+    what: &str,
+) -> Result<(Box<dyn Technique>, f64)> {
+    let mut instance = kind
+        .create(context.clone(), payload, pairs, progress)
+        .with_context(|| format!("creating {} {what}", kind.name()))?;
+    instance.update(&Frame {
+        lights: &context.scene.lights,
+        index: 0,
+        camera: None,
+        moving_mesh_poses: None,
+    })?;
+    let update_ms = instance.timings().total().as_secs_f64() * 1e3;
+    Ok((instance, update_ms))
 }
 
 #[derive(clap::Args, Clone, Debug)]
@@ -149,13 +226,7 @@ pub fn run(
     settings: &ConvergeSettings,
     quiet: bool,
 ) -> Result<String> {
-    let kind = techniques::find(&technique.technique)?;
-    if kind.name() == "reference" {
-        bail!("--technique reference is what converge compares with; name another technique");
-    }
-    if technique.bake.is_some() {
-        bail!("converge bakes every setting itself; drop --bake");
-    }
+    let kind = studied_kind(technique, "converge", "setting")?;
     let sweeps = settings
         .sweeps
         .iter()
@@ -163,11 +234,7 @@ pub fn run(
         .collect::<Result<Vec<_>>>()?;
     let fixed = technique.pairs()?;
     let bars = Bars::new(quiet);
-    let cache = settings
-        .measure
-        .cache
-        .clone()
-        .unwrap_or_else(std::env::temp_dir);
+    let cache = settings.measure.cache_folder()?;
     if let Some(folder) = &settings.images {
         std::fs::create_dir_all(folder)
             .with_context(|| format!("{}: cannot create the images folder", folder.display()))?;
@@ -175,7 +242,6 @@ pub fn run(
     let split = Split::of(context);
     let visible = &split.visible;
     let mut references: BTreeMap<u32, ReferenceSet> = BTreeMap::new();
-    let lights = context.scene.lights.clone();
     let mut rows = Vec::new();
     // Settings that differ only in run-time parameters share one bake.
     let mut last_bake: Option<(BakeKey, Vec<u8>)> = None;
@@ -200,32 +266,19 @@ pub fn run(
             }
         };
         let bake_seconds = start.elapsed().as_secs_f64();
-        let mut instance = kind
-            .create(context.clone(), payload.as_deref(), &pairs, &bars)
-            .with_context(|| format!("creating {} with {setting}", kind.name()))?;
-        instance.update(&Frame {
-            lights: &lights,
-            index: 0,
-            camera: None,
-            moving_mesh_poses: None,
-        })?;
-        let update_ms = instance.timings().total().as_secs_f64() * 1e3;
+        let (instance, update_ms) = updated_technique(
+            kind,
+            context,
+            payload.as_deref(),
+            &pairs,
+            &bars,
+            &format!("with {setting}"),
+        )?;
         let bounces = instance.reference_bounces(settings.measure.max_bounces);
         let reference = references.entry(bounces).or_insert_with(|| {
-            let path_settings = PathSettings {
-                max_bounces: bounces,
-                seed: settings.seed,
-                ..PathSettings::default()
-            };
-            ReferenceSet::cached(
-                context,
-                &split.space,
-                path_settings,
-                settings.measure.reference_samples,
-                settings.measure.reference_spp,
-                Some(&cache),
-                &bars,
-            )
+            settings
+                .measure
+                .reference(context, &split, bounces, settings.seed, &cache, &bars)
         });
         let (measurement, image) = Measurement::of(
             context,

@@ -11,17 +11,16 @@
 //! variant, the median, 90th percentile and worst against the kind's bound,
 //! and writes the worst variants' images.
 
-use crate::converge::{percent, MeasureSettings};
+use crate::converge::{percent, studied_kind, updated_technique, MeasureSettings};
 use crate::progress::Bars;
-use crate::techniques;
 use anyhow::{bail, Context, Result};
-use relight_render::convergence::{Measurement, ReferenceSet, Split, TILE};
+use relight_render::convergence::{Measurement, Split, TILE};
 use relight_render::metrics::tile_ratio_image;
 use relight_render::robustness::{
     bound, distribution, ContactError, VariantCase, UNLIT_LIGHT_RATIO,
 };
 use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
-use relight_technique::{ContextSettings, Frame};
+use relight_technique::ContextSettings;
 use relight_trace::path::PathSettings;
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -43,7 +42,8 @@ pub struct RobustnessSettings {
     pub shrink: u32,
     #[command(flatten)]
     pub measure: MeasureSettings,
-    /// Keep the variants' files here (default: a temporary folder).
+    /// Keep the variants' files here (default: each is written to the
+    /// temporary folder and removed once loaded).
     #[arg(long)]
     pub keep: Option<PathBuf>,
     /// Write the worst variants' images (reference, technique, 8x8-tile
@@ -101,33 +101,13 @@ pub fn run(
     settings: &RobustnessSettings,
     quiet: bool,
 ) -> Result<String> {
-    let kind = techniques::find(&technique.technique)?;
-    if kind.name() == "reference" {
-        bail!("--technique reference is what robustness compares with; name another technique");
-    }
-    if technique.bake.is_some() {
-        bail!("robustness bakes every variant itself; drop --bake");
-    }
+    let kind = studied_kind(technique, "robustness", "variant")?;
     if settings.variants == 0 {
         bail!("--variants must be at least 1");
     }
     let pairs = technique.pairs()?;
     let bars = Bars::new(quiet);
-    let cache = settings
-        .measure
-        .cache
-        .clone()
-        .unwrap_or_else(std::env::temp_dir);
-    std::fs::create_dir_all(&cache)
-        .with_context(|| format!("{}: cannot create the reference cache", cache.display()))?;
-    let scratch;
-    let keep = match &settings.keep {
-        Some(folder) => folder.clone(),
-        None => {
-            scratch = tempfile_folder()?;
-            scratch.clone()
-        }
-    };
+    let cache = settings.measure.cache_folder()?;
     if let Some(folder) = &settings.images {
         std::fs::create_dir_all(folder)
             .with_context(|| format!("{}: cannot create the images folder", folder.display()))?;
@@ -140,13 +120,22 @@ pub fn run(
         if !quiet {
             eprintln!("== {name}: {}", generated.description());
         }
-        let case = VariantCase::load(
-            generated,
-            &keep.join(&name),
-            settings.shrink,
-            context_settings,
-        )
-        .with_context(|| format!("variant {name} (seed {})", settings.seed))?;
+        // The loader reads files: a variant not kept is written to the
+        // temporary folder and removed once loaded.
+        let folder = match &settings.keep {
+            Some(keep) => keep.join(&name),
+            None => std::env::temp_dir().join(format!(
+                "relight-variant-{}-{}-{name}",
+                std::process::id(),
+                settings.seed
+            )),
+        };
+        let loaded = VariantCase::load(generated, &folder, settings.shrink, context_settings);
+        if settings.keep.is_none() {
+            // Left behind, it costs only disk space.
+            let _ = std::fs::remove_dir_all(&folder);
+        }
+        let case = loaded.with_context(|| format!("variant {name} (seed {})", settings.seed))?;
         let context = &case.context;
         let start = Instant::now();
         let payload = if kind.needs_bake() {
@@ -158,28 +147,22 @@ pub fn run(
             None
         };
         let bake_seconds = start.elapsed().as_secs_f64();
-        let mut instance = kind
-            .create(context.clone(), payload.as_deref(), &pairs, &bars)
-            .with_context(|| format!("creating {} on variant {name}", kind.name()))?;
-        instance.update(&Frame {
-            lights: &context.scene.lights,
-            index: 0,
-            camera: None,
-            moving_mesh_poses: None,
-        })?;
-        let update_ms = instance.timings().total().as_secs_f64() * 1e3;
+        let (instance, update_ms) = updated_technique(
+            kind,
+            context,
+            payload.as_deref(),
+            &pairs,
+            &bars,
+            &format!("on variant {name}"),
+        )?;
         let split = Split::of(context);
         let bounces = instance.reference_bounces(settings.measure.max_bounces);
-        let reference = ReferenceSet::cached(
+        let reference = settings.measure.reference(
             context,
-            &split.space,
-            PathSettings {
-                max_bounces: bounces,
-                ..PathSettings::default()
-            },
-            settings.measure.reference_samples,
-            settings.measure.reference_spp,
-            Some(&cache),
+            &split,
+            bounces,
+            PathSettings::default().seed,
+            &cache,
             &bars,
         );
         let (measurement, image) = Measurement::of(
@@ -246,24 +229,6 @@ pub fn run(
         .with_context(|| format!("{}: cannot write the JSON report", path.display()))?;
     }
     report(kind.name(), &pairs, settings, &rows)
-}
-
-/// A fresh folder under the system's temporary folder.
-fn tempfile_folder() -> Result<PathBuf> {
-    let folder = std::env::temp_dir().join(format!(
-        "relight-variants-{}-{}",
-        std::process::id(),
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |elapsed| elapsed.as_nanos())
-    ));
-    std::fs::create_dir_all(&folder).with_context(|| {
-        format!(
-            "{}: cannot create a folder for the variants",
-            folder.display()
-        )
-    })?;
-    Ok(folder)
 }
 
 fn report(

@@ -610,14 +610,20 @@ pub fn shipped_context(relative: &str, shrink: u32) -> std::sync::Arc<SceneConte
         .join(relative);
     let mut scene = relight_scene::load_scene(&path)
         .unwrap_or_else(|error| panic!("{}: {error}", path.display()));
-    let [width, height] = scene.camera.resolution;
-    let shrink = shrink.max(1);
-    scene.camera.resolution = [(width / shrink).max(1), (height / shrink).max(1)];
+    shrink_camera(&mut scene, shrink);
     let settings = relight_technique::ContextSettings {
         lightmap: relight_scene::atlas::TexelDensity::from_resolution(None),
         ..relight_technique::ContextSettings::default()
     };
     std::sync::Arc::new(SceneContext::new(scene, settings).expect("the scene's lightmap builds"))
+}
+
+/// Divides the camera image's sides by `shrink` (at least 1 pixel, a
+/// `shrink` of 0 taken as 1): cheaper references for tests and studies.
+pub fn shrink_camera(scene: &mut relight_scene::Scene, shrink: u32) {
+    let [width, height] = scene.camera.resolution;
+    let shrink = shrink.max(1);
+    scene.camera.resolution = [(width / shrink).max(1), (height / shrink).max(1)];
 }
 
 /// relRMSE of `technique.indirect_irradiance_in_space` at the

@@ -11,7 +11,7 @@
 //! [`ContactError::of`] adds the feet's tiles, and [`bound`] says what a
 //! variant of each kind is held to.
 
-use crate::convergence::TILE;
+use crate::convergence::{shrink_camera, TILE};
 use crate::image::Image;
 use crate::metrics::{subset_error, tile_means};
 use glam::Vec3;
@@ -42,22 +42,9 @@ impl VariantCase {
         shrink: u32,
         settings: ContextSettings,
     ) -> Result<Self, SceneError> {
-        std::fs::create_dir_all(folder).map_err(|source| SceneError::Io {
-            path: folder.to_path_buf(),
-            source,
-        })?;
-        for (name, text) in [
-            ("mesh.obj", &variant.obj),
-            ("mesh.mtl", &variant.mtl),
-            ("scene.toml", &variant.scene_toml),
-        ] {
-            let path = folder.join(name);
-            std::fs::write(&path, text).map_err(|source| SceneError::Io { path, source })?;
-        }
-        let mut scene = relight_scene::load_scene(&folder.join("scene.toml"))?;
-        let [width, height] = scene.camera.resolution;
-        let shrink = shrink.max(1);
-        scene.camera.resolution = [(width / shrink).max(1), (height / shrink).max(1)];
+        let scene_file = variant.write(folder)?;
+        let mut scene = relight_scene::load_scene(&scene_file)?;
+        shrink_camera(&mut scene, shrink);
         let context = Arc::new(SceneContext::new(scene, settings)?);
         let contact_tiles = contact_tiles(&context, &variant.feet, TILE);
         Ok(Self {

@@ -73,16 +73,25 @@ pub fn atrium(target_triangles: usize, seed: u64) -> Result<Atrium, SceneError> 
 /// (created if needed) and returns the path of `scene.toml`.
 pub fn write_atrium(folder: &Path, target_triangles: usize) -> Result<PathBuf, SceneError> {
     let atrium = atrium(target_triangles, ATRIUM_DEFAULT_SEED)?;
+    write_scene_files(
+        folder,
+        &[
+            ("atrium.obj", &atrium.obj),
+            ("atrium.mtl", &atrium.mtl),
+            ("scene.toml", &atrium.scene_toml),
+        ],
+    )
+}
+
+/// Writes each (file name, text) into `folder` (created if needed) and
+/// returns the path of its `scene.toml`.
+fn write_scene_files(folder: &Path, files: &[(&str, &String)]) -> Result<PathBuf, SceneError> {
     let io_error = |path: &Path| {
         let path = path.to_path_buf();
         move |source| SceneError::Io { path, source }
     };
     std::fs::create_dir_all(folder).map_err(io_error(folder))?;
-    for (name, text) in [
-        ("atrium.obj", &atrium.obj),
-        ("atrium.mtl", &atrium.mtl),
-        ("scene.toml", &atrium.scene_toml),
-    ] {
+    for (name, text) in files {
         let path = folder.join(name);
         std::fs::write(&path, text).map_err(io_error(&path))?;
     }

@@ -154,6 +154,19 @@ pub struct Variant {
 }
 
 impl Variant {
+    /// Writes `mesh.obj`, `mesh.mtl` and `scene.toml` into `folder`
+    /// (created if needed) and returns the path of `scene.toml`.
+    pub fn write(&self, folder: &Path) -> Result<PathBuf, SceneError> {
+        super::write_scene_files(
+            folder,
+            &[
+                ("mesh.obj", &self.obj),
+                ("mesh.mtl", &self.mtl),
+                ("scene.toml", &self.scene_toml),
+            ],
+        )
+    }
+
     /// Folder name: index and kind, sortable.
     pub fn name(&self) -> String {
         format!("{:03}-{}", self.index, self.kind.name())
@@ -280,24 +293,11 @@ pub fn write_variants(
             ),
         });
     }
-    let io_error = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| SceneError::Io { path, source }
-    };
     let mut written = Vec::with_capacity(count);
     let mut index_text = format!("# relight gen variants --seed {seed} --count {count}\n");
     for index in 0..count {
         let variant = variant(seed, index);
-        let sub = folder.join(variant.name());
-        std::fs::create_dir_all(&sub).map_err(io_error(&sub))?;
-        for (name, text) in [
-            ("mesh.obj", &variant.obj),
-            ("mesh.mtl", &variant.mtl),
-            ("scene.toml", &variant.scene_toml),
-        ] {
-            let path = sub.join(name);
-            std::fs::write(&path, text).map_err(io_error(&path))?;
-        }
+        let scene = variant.write(&folder.join(variant.name()))?;
         let _ = writeln!(
             index_text,
             "{}  {} triangles  {}",
@@ -305,10 +305,13 @@ pub fn write_variants(
             variant.triangle_count,
             variant.description()
         );
-        written.push((sub.join("scene.toml"), variant));
+        written.push((scene, variant));
     }
     let index_path = folder.join("variants.txt");
-    std::fs::write(&index_path, index_text).map_err(io_error(&index_path))?;
+    std::fs::write(&index_path, index_text).map_err(|source| SceneError::Io {
+        path: index_path.clone(),
+        source,
+    })?;
     Ok(written)
 }
 
@@ -495,19 +498,15 @@ impl Builder {
     }
 
     /// The inside of an axis-aligned box, `openings[face]` cut into each
-    /// face (face = 2 * axis + side, side 1 the high one), modelled as
-    /// `walls` with `thickness`; `skip` faces are left out entirely.
-    #[allow(clippy::too_many_arguments)]
-    fn enclosure(
-        &mut self,
-        materials: [usize; 3],
-        low: Vec3,
-        high: Vec3,
-        openings: &[Vec<Rect>; 6],
-        walls: Walls,
-        thickness: f32,
-        overhang: f32,
-    ) {
+    /// face (face = 2 * axis + side, side 1 the high one), modelled in
+    /// `style`.
+    fn enclosure(&mut self, style: &Style, low: Vec3, high: Vec3, openings: &[Vec<Rect>; 6]) {
+        let Style {
+            materials,
+            walls,
+            thickness,
+            overhang,
+        } = *style;
         for (face, holes) in openings.iter().enumerate() {
             let (axis, side) = (face / 2, face % 2);
             let material = match axis {
@@ -989,10 +988,38 @@ fn aim(room: &Room, feet: &[Foot], eye: Vec3) -> Vec3 {
     }
 }
 
-fn wall_thickness(rng: &mut Random, walls: Walls) -> f32 {
-    match walls {
-        Walls::Solids => rng.range(0.1, 0.35),
-        _ => 0.0,
+/// How one building's enclosure is modelled: its wall, floor and ceiling
+/// materials, wall kind, solid walls' thickness and overlapping walls'
+/// overhang past the corners.
+#[derive(Clone, Copy)]
+struct Style {
+    materials: [usize; 3],
+    walls: Walls,
+    thickness: f32,
+    overhang: f32,
+}
+
+impl Style {
+    /// Draws materials, thickness (0.1-0.35 m for solids) and an overhang
+    /// in `overhang` metres, in that order.
+    fn draw(
+        rng: &mut Random,
+        builder: &mut Builder,
+        walls: Walls,
+        albedo: f32,
+        overhang: (f32, f32),
+    ) -> Self {
+        let materials = room_materials(rng, builder, albedo);
+        let thickness = match walls {
+            Walls::Solids => rng.range(0.1, 0.35),
+            _ => 0.0,
+        };
+        Self {
+            materials,
+            walls,
+            thickness,
+            overhang: rng.range(overhang.0, overhang.1),
+        }
     }
 }
 
@@ -1002,18 +1029,8 @@ fn room(rng: &mut Random, builder: &mut Builder, walls: Walls, albedo: f32) -> P
         rng.range(2.2, 3.6),
         rng.range(2.0, 8.0),
     );
-    let materials = room_materials(rng, builder, albedo);
-    let thickness = wall_thickness(rng, walls);
-    let overhang = rng.range(0.05, 0.3);
-    builder.enclosure(
-        materials,
-        Vec3::ZERO,
-        size,
-        &Default::default(),
-        walls,
-        thickness,
-        overhang,
-    );
+    let style = Style::draw(rng, builder, walls, albedo, (0.05, 0.3));
+    builder.enclosure(&style, Vec3::ZERO, size, &Default::default());
     let mut room = Room {
         low: Vec3::ZERO,
         high: size,
@@ -1048,9 +1065,8 @@ fn two_rooms(
     let height = rng.range(2.3, 3.4);
     let width = rng.range(2.5, 6.0);
     let (length_a, length_b) = (rng.range(2.5, 6.0), rng.range(2.5, 6.0));
-    let materials = room_materials(rng, builder, albedo);
-    let thickness = wall_thickness(rng, walls);
-    let overhang = rng.range(0.05, 0.3);
+    let style = Style::draw(rng, builder, walls, albedo, (0.05, 0.3));
+    let (materials, thickness) = (style.materials, style.thickness);
     // The partition (or the gap between two boxes) between x = length_a and
     // x = start_b.
     let partition = match (shell, walls) {
@@ -1076,15 +1092,7 @@ fn two_rooms(
     let size = Vec3::new(start_b + length_b, height, width);
     match shell {
         Shell::OneShell => {
-            builder.enclosure(
-                materials,
-                Vec3::ZERO,
-                size,
-                &Default::default(),
-                walls,
-                thickness,
-                overhang,
-            );
+            builder.enclosure(&style, Vec3::ZERO, size, &Default::default());
             let whole = Rect::new(Vec2::ZERO, Vec2::new(height, width));
             builder.wall(materials[0], 0, length_a, whole, &[door], false);
             builder.wall(materials[0], 0, start_b, whole, &[door], true);
@@ -1102,24 +1110,14 @@ fn two_rooms(
             openings_a[1] = vec![door];
             let mut openings_b: [Vec<Rect>; 6] = Default::default();
             openings_b[0] = vec![door];
-            builder.enclosure(
-                materials,
-                Vec3::ZERO,
-                Vec3::new(length_a, height, width),
-                &openings_a,
-                walls,
-                thickness,
-                overhang.min(partition * 0.5).max(0.0),
-            );
-            builder.enclosure(
-                materials,
-                Vec3::new(start_b, 0.0, 0.0),
-                size,
-                &openings_b,
-                walls,
-                thickness,
-                overhang.min(partition * 0.5).max(0.0),
-            );
+            // Overlapping walls stop halfway across the gap between boxes.
+            let boxes = Style {
+                overhang: style.overhang.min(partition * 0.5).max(0.0),
+                ..style
+            };
+            let a_high = Vec3::new(length_a, height, width);
+            builder.enclosure(&boxes, Vec3::ZERO, a_high, &openings_a);
+            builder.enclosure(&boxes, Vec3::new(start_b, 0.0, 0.0), size, &openings_b);
             // A door frame across the gap between the boxes' outer faces.
             let gap_from = length_a + box_thickness;
             let gap_to = start_b - box_thickness;
@@ -1186,9 +1184,11 @@ fn hall(rng: &mut Random, builder: &mut Builder, walls: Walls, albedo: f32) -> P
         rng.range(5.0, 15.0).min(length * 0.6),
         rng.range(0.35, 0.8) * length,
     );
-    let materials = room_materials(rng, builder, albedo);
-    let thickness = wall_thickness(rng, walls).max(if walls == Walls::Solids { 0.3 } else { 0.0 });
-    let overhang = rng.range(0.1, 0.5);
+    let mut style = Style::draw(rng, builder, walls, albedo, (0.1, 0.5));
+    if walls == Walls::Solids {
+        // A hall's walls are at least 0.3 m thick.
+        style.thickness = style.thickness.max(0.3);
+    }
     // Small windows along the x = 0 wall; in that plane a runs along y and
     // b along z.
     let mut windows = Vec::new();
@@ -1209,15 +1209,7 @@ fn hall(rng: &mut Random, builder: &mut Builder, walls: Walls, albedo: f32) -> P
     }
     let mut openings: [Vec<Rect>; 6] = Default::default();
     openings[0] = windows;
-    builder.enclosure(
-        materials,
-        Vec3::ZERO,
-        size,
-        &openings,
-        walls,
-        thickness,
-        overhang,
-    );
+    builder.enclosure(&style, Vec3::ZERO, size, &openings);
     let mut room = Room {
         low: Vec3::ZERO,
         high: size,
