@@ -333,6 +333,15 @@ pub fn run(
     Ok(report)
 }
 
+/// A finite number as JSON, anything else as null (JSON has no NaN).
+pub(crate) fn json_number(value: f64) -> serde_json::Value {
+    if value.is_finite() {
+        serde_json::json!(value)
+    } else {
+        serde_json::Value::Null
+    }
+}
+
 pub(crate) fn percent(value: f64) -> String {
     if value.is_nan() {
         "-".to_string()
@@ -480,13 +489,6 @@ impl Study<'_> {
             rows,
             ..
         } = *self;
-        let number = |value: f64| {
-            if value.is_finite() {
-                serde_json::json!(value)
-            } else {
-                serde_json::Value::Null
-            }
-        };
         serde_json::json!({
             "scene": scene_path.display().to_string(),
             "technique": technique,
@@ -499,11 +501,11 @@ impl Study<'_> {
                 let noise = reference.noise(visible);
                 serde_json::json!({
                     "bounces": bounces,
-                    "lightmap": number(noise.lightmap),
-                    "visible_lightmap": number(noise.visible_lightmap),
-                    "image": number(noise.image),
-                    "image_tiles": number(noise.image_tiles),
-                    "space": number(noise.space),
+                    "lightmap": json_number(noise.lightmap),
+                    "visible_lightmap": json_number(noise.visible_lightmap),
+                    "image": json_number(noise.image),
+                    "image_tiles": json_number(noise.image_tiles),
+                    "space": json_number(noise.space),
                 })
             }).collect::<Vec<_>>(),
             "settings": rows.iter().map(|row| {
@@ -513,24 +515,24 @@ impl Study<'_> {
                     "bounces": row.bounces,
                     "bake_seconds": row.bake_seconds,
                     "update_ms": row.update_ms,
-                    "lightmap": number(m.lightmap),
-                    "visible_lightmap": number(m.visible_lightmap),
-                    "image": number(m.image),
-                    "image_tiles": number(m.image_tiles),
-                    "light_ratio": number(m.light_ratio),
-                    "space": number(m.space),
-                    "space_light_ratio": number(m.space_light_ratio),
+                    "lightmap": json_number(m.lightmap),
+                    "visible_lightmap": json_number(m.visible_lightmap),
+                    "image": json_number(m.image),
+                    "image_tiles": json_number(m.image_tiles),
+                    "light_ratio": json_number(m.light_ratio),
+                    "space": json_number(m.space),
+                    "space_light_ratio": json_number(m.space_light_ratio),
                     "back_facing_pixels": m.back_facing.count,
-                    "back_facing_share": number(m.back_facing.share),
-                    "back_facing_relative_rmse": number(m.back_facing.relative_rmse),
-                    "back_facing_light_ratio": number(m.back_facing.light_ratio),
+                    "back_facing_share": json_number(m.back_facing.share),
+                    "back_facing_relative_rmse": json_number(m.back_facing.relative_rmse),
+                    "back_facing_light_ratio": json_number(m.back_facing.light_ratio),
                     "classes": m.classes.iter().map(|class| serde_json::json!({
                         "class": class.class.name(),
                         "receivers": class.receivers,
                         "visible": class.visible,
-                        "share": number(class.share),
-                        "relative_rmse": number(class.relative_rmse),
-                        "light_ratio": number(class.light_ratio),
+                        "share": json_number(class.share),
+                        "relative_rmse": json_number(class.relative_rmse),
+                        "light_ratio": json_number(class.light_ratio),
                     })).collect::<Vec<_>>(),
                 })
             }).collect::<Vec<_>>(),

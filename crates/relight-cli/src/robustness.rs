@@ -11,7 +11,7 @@
 //! variant, the median, 90th percentile and worst against the kind's bound,
 //! and writes the worst variants' images.
 
-use crate::converge::{percent, studied_kind, updated_technique, MeasureSettings};
+use crate::converge::{json_number, percent, studied_kind, updated_technique, MeasureSettings};
 use crate::progress::Bars;
 use anyhow::{bail, Context, Result};
 use relight_render::convergence::{Measurement, Split, TILE};
@@ -369,13 +369,6 @@ fn report(
 }
 
 fn json(technique: &str, settings: &RobustnessSettings, rows: &[Row]) -> serde_json::Value {
-    let number = |value: f64| {
-        if value.is_finite() {
-            serde_json::json!(value)
-        } else {
-            serde_json::Value::Null
-        }
-    };
     serde_json::json!({
         "technique": technique,
         "seed": settings.seed,
@@ -394,19 +387,19 @@ fn json(technique: &str, settings: &RobustnessSettings, rows: &[Row]) -> serde_j
                 "receivers": row.receivers,
                 "bake_seconds": row.bake_seconds,
                 "update_ms": row.update_ms,
-                "image_tiles": number(m.image_tiles),
-                "bound": row.bound.map(number),
-                "reference_tile_noise": number(row.reference_tile_noise),
+                "image_tiles": json_number(m.image_tiles),
+                "bound": row.bound.map(json_number),
+                "reference_tile_noise": json_number(row.reference_tile_noise),
                 "reference_resolves_bound": row.resolved(),
-                "lightmap": number(m.lightmap),
-                "visible_lightmap": number(m.visible_lightmap),
-                "image": number(m.image),
-                "light_ratio": number(m.light_ratio),
-                "space": number(m.space),
-                "space_light_ratio": number(m.space_light_ratio),
+                "lightmap": json_number(m.lightmap),
+                "visible_lightmap": json_number(m.visible_lightmap),
+                "image": json_number(m.image),
+                "light_ratio": json_number(m.light_ratio),
+                "space": json_number(m.space),
+                "space_light_ratio": json_number(m.space_light_ratio),
                 "contact_tiles": row.contact.tiles,
-                "contact_relative_rmse": number(row.contact.relative_rmse),
-                "contact_light_ratio": number(row.contact.light_ratio),
+                "contact_relative_rmse": json_number(row.contact.relative_rmse),
+                "contact_light_ratio": json_number(row.contact.light_ratio),
             })
         }).collect::<Vec<_>>(),
     })
