@@ -226,7 +226,9 @@ fn corner_lightmap_uvs(
     let mut uvs = Vec::with_capacity(corners.len());
     for (triangle, file_corners) in record.triangles.iter().zip(corners.chunks_exact(3)) {
         let Some(scene_triangle) = triangle.map(|t| t as usize) else {
-            // Dropped as degenerate: no area to light.
+            // Dropped as degenerate (no area to light), or cut into pieces
+            // for the lightmap's coarser rings far out, which one triangle's
+            // UVs cannot follow (the scene's warnings say so).
             uvs.extend([[0.0, 0.0]; 3]);
             continue;
         };

@@ -914,6 +914,25 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
     say!("texel size      {:.4} m", atlas.metres_per_texel);
     say!("receivers       {}", atlas.receivers.len());
     say!("coverage        {:.1} %", atlas.coverage() * 100.0);
+    if let Some(region) = &atlas.detail {
+        let near = atlas
+            .receivers
+            .positions
+            .iter()
+            .filter(|&&position| region.gap(position, position) < region.margin)
+            .count();
+        say!(
+            "detail region   [{:.1}, {:.1}, {:.1}] .. [{:.1}, {:.1}, {:.1}] and {:.1} m around it at full density ({near} receivers, {:.1} %); texel edges 4x longer ring by ring outside",
+            region.low.x,
+            region.low.y,
+            region.low.z,
+            region.high.x,
+            region.high.y,
+            region.high.z,
+            region.margin,
+            100.0 * near as f64 / atlas.receivers.len().max(1) as f64
+        );
+    }
     say!(
         "BVH             {} nodes, {:.1} MiB, built in {:.1} ms",
         context.bvh.node_count(),

@@ -16,7 +16,12 @@
 //! bilinear lookup anywhere inside a chart never fetches an empty texel and
 //! never mixes in a neighbouring chart (seam-aware). The dilation is a
 //! precomputed gather list, so the per-frame cost is one copy per gutter texel.
+//!
+//! Texel density is uniform inside the scene's detail region and coarsens
+//! ring by ring outside it ([`crate::detail`]): charts grow within one ring
+//! and each is projected at its ring's texel size.
 
+use crate::detail::DetailRegion;
 use crate::{Scene, SceneError};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
@@ -119,9 +124,13 @@ pub struct Atlas {
     /// True when the mesh's own second UV set was used.
     pub from_mesh_uvs: bool,
     pub chart_count: usize,
-    /// Metres per texel edge: as generated, or for the mesh's own UVs the
-    /// mean over the surface (0 only for a mesh without area).
+    /// Metres per texel edge inside the detail region: as generated, or for
+    /// the mesh's own UVs the mean over the surface (0 only for a mesh
+    /// without area).
     pub metres_per_texel: f32,
+    /// The region of full density when texels coarsen outside it (a
+    /// generated atlas of a scene that reaches far out), else `None`.
+    pub detail: Option<DetailRegion>,
 }
 
 const EMPTY: u32 = u32::MAX;
@@ -141,7 +150,14 @@ impl Atlas {
         if let Some(atlas) = Self::from_mesh_uvs(scene, density) {
             return Ok(atlas);
         }
-        let charts = grow_charts(scene);
+        let detail = scene.detail_region();
+        let rings: Vec<u32> = match &detail {
+            Some(region) => (0..scene.mesh.triangles.len())
+                .map(|triangle| region.ring_of_triangle(&scene.mesh, triangle))
+                .collect(),
+            None => vec![0; scene.mesh.triangles.len()],
+        };
+        let charts = grow_charts(scene, &rings);
         let (metres_per_texel, (width, height, triangle_uvs)) = match density {
             TexelDensity::MetresPerTexel(metres) => {
                 (metres, pack_charts(scene, &charts, metres, None))
@@ -166,6 +182,7 @@ impl Atlas {
         let mut atlas = Self::rasterise(scene, width, height, triangle_uvs);
         atlas.chart_count = charts.len();
         atlas.metres_per_texel = metres_per_texel;
+        atlas.detail = detail.filter(|_| rings.iter().any(|&ring| ring > 0));
         Ok(atlas)
     }
 
@@ -316,6 +333,7 @@ impl Atlas {
             from_mesh_uvs: false,
             chart_count: 0,
             metres_per_texel: 0.0,
+            detail: None,
         }
     }
 
@@ -512,16 +530,18 @@ fn minimal_resolution(chart_count: usize) -> u32 {
     (8..=16384).find(|&side| fits(side)).unwrap_or(16384)
 }
 
-/// A chart: triangles and the plane basis they are projected onto.
+/// A chart: triangles, the plane basis they are projected onto and its
+/// texel size relative to the detail region's.
 struct Chart {
     triangles: Vec<u32>,
     tangent: Vec3,
     bitangent: Vec3,
+    texel_scale: f32,
 }
 
 /// Grows charts by flood fill over shared edges, in triangle order, so the
-/// result is deterministic.
-fn grow_charts(scene: &Scene) -> Vec<Chart> {
+/// result is deterministic; a chart keeps to its seed's ring of detail.
+fn grow_charts(scene: &Scene, rings: &[u32]) -> Vec<Chart> {
     let mesh = &scene.mesh;
     let triangle_count = mesh.triangles.len();
     // Welds vertices by position so meshes with split vertices still connect.
@@ -570,6 +590,7 @@ fn grow_charts(scene: &Scene) -> Vec<Chart> {
                     let n = neighbour as usize;
                     if chart_of[n] == u32::MAX
                         && mesh.area(n) > 0.0
+                        && rings[n] == rings[seed]
                         && normals[n].dot(seed_normal) >= CHART_NORMAL_COS
                     {
                         chart_of[n] = chart_index;
@@ -585,6 +606,7 @@ fn grow_charts(scene: &Scene) -> Vec<Chart> {
             triangles: members,
             tangent,
             bitangent,
+            texel_scale: DetailRegion::texel_scale(rings[seed]),
         });
     }
     charts
@@ -652,7 +674,24 @@ fn fit_resolution(
         let packed = pack_charts(scene, charts, metres, Some(resolution));
         (packed.0.max(packed.1) <= resolution, packed)
     };
-    let total_area = scene.mesh.total_area().max(1e-12) as f32;
+    // Area in detail-region texels: a chart of ring k covers 4^k times less.
+    let uniform = charts.iter().all(|chart| chart.texel_scale == 1.0);
+    let effective_area = if uniform {
+        scene.mesh.total_area()
+    } else {
+        charts
+            .iter()
+            .map(|chart| {
+                let area: f64 = chart
+                    .triangles
+                    .iter()
+                    .map(|&triangle| scene.mesh.area(triangle as usize) as f64)
+                    .sum();
+                area / (chart.texel_scale as f64).powi(2)
+            })
+            .sum::<f64>()
+    };
+    let total_area = effective_area.max(1e-12) as f32;
     let mut too_small = (total_area / (resolution as f32).powi(2)).sqrt();
     let (first_fits, first) = fits(too_small);
     if first_fits {
@@ -706,11 +745,11 @@ fn pack_charts(
     for chart in charts {
         let mut lo = Vec2::splat(f32::INFINITY);
         let mut hi = Vec2::splat(f32::NEG_INFINITY);
+        let chart_metres = metres_per_texel * chart.texel_scale;
         for &triangle in &chart.triangles {
             let vertices = scene.mesh.vertices(triangle as usize);
-            let uvs = vertices.map(|p| {
-                Vec2::new(p.dot(chart.tangent), p.dot(chart.bitangent)) / metres_per_texel
-            });
+            let uvs = vertices
+                .map(|p| Vec2::new(p.dot(chart.tangent), p.dot(chart.bitangent)) / chart_metres);
             for uv in uvs {
                 lo = lo.min(uv);
                 hi = hi.max(uv);

@@ -6,10 +6,14 @@
 //! [`Scene`] (triangles, Lambertian materials, textures, lights). The
 //! [`atlas`] module then parameterises the static geometry for lightmaps and
 //! produces the [`atlas::Receivers`] (lightmap texels that cover geometry)
-//! on which every technique stores, and is measured on, indirect light.
+//! on which every technique stores, and is measured on, indirect light;
+//! [`detail`] decides where the atlas spends its texels (full density where
+//! the scene's detail is, coarser outside), cutting at load the few huge
+//! triangles that reach far out, such as a ground plane.
 //! Lights are the only part of a scene that changes from frame to frame.
 
 pub mod atlas;
+pub mod detail;
 mod error;
 pub mod generate;
 mod gltf_loader;

@@ -262,6 +262,9 @@ pub struct Scene {
     /// engine that loads the same file itself find relight's triangles, and
     /// so its lightmap atlas, for each of its meshes.
     pub gltf_primitives: Vec<GltfPrimitive>,
+    /// Where the lightmap spends its texels (`[lightmap]` of the scene
+    /// file; see [`crate::detail`]).
+    pub lightmap_layout: crate::detail::LightmapLayout,
 }
 
 /// One triangle-list primitive of a glTF mesh as one node places it.

@@ -14,6 +14,7 @@
 //!   degenerate triangles, choosing a camera) lives here so that OBJ and glTF
 //!   scenes obey exactly the same rules.
 
+use crate::detail::{split_for_detail, DetailRegion, LightmapDetail, LightmapLayout};
 use crate::{gltf_loader, obj_loader};
 use crate::{Camera, Environment, Light, Material, Mesh, Scene, SceneError, Texture};
 use glam::Vec3;
@@ -48,6 +49,8 @@ pub struct SceneFile {
     pub environment: Environment,
     /// Raw technique sections keyed by name (see [`TECHNIQUE_SECTIONS`]).
     pub extra: BTreeMap<String, toml::Value>,
+    /// The `[lightmap]` section; the default without one.
+    pub lightmap: LightmapLayout,
 }
 
 type Spanned3 = Spanned<[f32; 3]>;
@@ -60,6 +63,7 @@ struct RawSceneFile {
     #[serde(default)]
     lights: Vec<RawLight>,
     environment: Option<RawEnvironment>,
+    lightmap: Option<RawLightmap>,
     pic: Option<toml::Value>,
     srp: Option<toml::Value>,
     prm: Option<toml::Value>,
@@ -95,6 +99,15 @@ struct RawLight {
 #[serde(deny_unknown_fields)]
 struct RawEnvironment {
     radiance: Spanned3,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLightmap {
+    detail: Option<Spanned<String>>,
+    detail_min: Option<Spanned3>,
+    detail_max: Option<Spanned3>,
+    detail_margin: Option<Spanned<f32>>,
 }
 
 /// 1-based line of a byte offset, for error messages.
@@ -153,6 +166,71 @@ impl TextSource<'_> {
                 ),
             ))
         }
+    }
+
+    fn lightmap(&self, raw: &RawLightmap) -> Result<LightmapLayout, SceneError> {
+        let kind = raw
+            .detail
+            .as_ref()
+            .map_or("auto", |kind| kind.get_ref().as_str());
+        let bounds = match (&raw.detail_min, &raw.detail_max) {
+            (Some(min), Some(max)) => Some((
+                min,
+                self.finite_vec3(min, "lightmap.detail_min")?,
+                self.finite_vec3(max, "lightmap.detail_max")?,
+            )),
+            (None, None) => None,
+            (Some(one), None) | (None, Some(one)) => {
+                return Err(self.error_at(
+                    one,
+                    "give both `lightmap.detail_min` and `lightmap.detail_max` (the corners of the detail box), or neither",
+                ))
+            }
+        };
+        let detail = match (kind, bounds) {
+            ("auto", None) => LightmapDetail::Automatic,
+            ("uniform", None) => LightmapDetail::Uniform,
+            ("box", Some((at, low, high))) => {
+                if !low.cmplt(high).all() {
+                    return Err(self.error_at(
+                        at,
+                        "`lightmap.detail_min` must be below `lightmap.detail_max` on every axis",
+                    ));
+                }
+                LightmapDetail::Bounds { low, high }
+            }
+            ("box", None) => {
+                let at = raw.detail.as_ref().expect("\"box\" was read from `detail`");
+                return Err(self.error_at(
+                    at,
+                    "`lightmap.detail = \"box\"` needs `detail_min` and `detail_max`, the corners of the box that gets full texel density",
+                ));
+            }
+            ("auto" | "uniform", Some((at, _, _))) => {
+                return Err(self.error_at(
+                    at,
+                    "`lightmap.detail_min` and `detail_max` go with `detail = \"box\"`",
+                ))
+            }
+            (other, _) => {
+                let at = raw.detail.as_ref().expect("only `detail` names a kind");
+                return Err(self.error_at(
+                    at,
+                    format!("`lightmap.detail` is \"{other}\": use \"auto\" (full texel density where the scene's detail is, coarser far outside), \"uniform\" or \"box\""),
+                ));
+            }
+        };
+        let margin = match &raw.detail_margin {
+            Some(margin) if !(margin.get_ref().is_finite() && *margin.get_ref() > 0.0) => {
+                return Err(self.error_at(
+                    margin,
+                    "`lightmap.detail_margin` must be a positive number of metres",
+                ))
+            }
+            Some(margin) => Some(*margin.get_ref()),
+            None => None,
+        };
+        Ok(LightmapLayout { detail, margin })
     }
 
     fn camera(&self, raw: &RawCamera) -> Result<Camera, SceneError> {
@@ -376,6 +454,12 @@ fn parse_scene_text(path: &Path, text: &str) -> Result<SceneFile, SceneError> {
         },
         None => Environment::default(),
     };
+    let lightmap = raw
+        .lightmap
+        .as_ref()
+        .map(|lightmap| source.lightmap(lightmap))
+        .transpose()?
+        .unwrap_or_default();
     let extra: BTreeMap<String, toml::Value> = [
         ("pic", raw.pic),
         ("srp", raw.srp),
@@ -394,6 +478,7 @@ fn parse_scene_text(path: &Path, text: &str) -> Result<SceneFile, SceneError> {
         lights,
         environment,
         extra,
+        lightmap,
     })
 }
 
@@ -422,6 +507,7 @@ pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
             lights: Vec::new(),
             environment: Environment::default(),
             extra: BTreeMap::new(),
+            lightmap: LightmapLayout::default(),
         }
     } else {
         parse_scene_file(path)?
@@ -525,6 +611,14 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         .material_ids
         .iter()
         .all(|&id| (id as usize) < materials.len()));
+    let lightmap_layout = cut_for_lightmap_detail(
+        &mut mesh,
+        &materials,
+        file.lightmap,
+        &mut gltf_primitives,
+        &file.mesh,
+        &mut warnings,
+    );
 
     lights.extend(file.lights);
     let camera = match (file.camera, mesh_camera) {
@@ -551,7 +645,81 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         warnings,
         technique_sections: file.extra,
         gltf_primitives,
+        lightmap_layout,
     })
+}
+
+/// Cuts the triangles that reach from the detail region far out (see
+/// [`crate::detail`]) unless the mesh brings its own lightmap UVs, whose
+/// density is the author's. A glTF triangle that was cut no longer maps to
+/// one scene triangle, so an engine adopting the file cannot give it
+/// relight's lightmap: the warning says so and how to keep it whole.
+///
+/// Returns the layout with the region fixed as a box: the cut mesh has no
+/// huge triangles left, so the automatic region found again from it would
+/// be the whole ground.
+fn cut_for_lightmap_detail(
+    mesh: &mut Mesh,
+    materials: &[Material],
+    layout: LightmapLayout,
+    gltf_primitives: &mut [crate::GltfPrimitive],
+    mesh_path: &Path,
+    warnings: &mut Vec<String>,
+) -> LightmapLayout {
+    let Some(region) = DetailRegion::of(mesh, layout) else {
+        return layout;
+    };
+    let fixed = LightmapLayout {
+        detail: LightmapDetail::Bounds {
+            low: region.low,
+            high: region.high,
+        },
+        margin: Some(region.margin),
+    };
+    if !mesh.lightmap_uvs.is_empty() {
+        return fixed;
+    }
+    let emissive = |material: u32| materials[material as usize].emission.max_element() > 0.0;
+    let split = split_for_detail(mesh, &region, emissive);
+    if split.cut == 0 {
+        return fixed;
+    }
+    tracing::info!(
+        "{}: cut {} triangle(s) reaching more than {:.1} m outside the detail region [{:.1}, {:.1}, {:.1}]..[{:.1}, {:.1}, {:.1}] so that the lightmap coarsens with distance (`[lightmap] detail = \"uniform\"` keeps them whole)",
+        mesh_path.display(),
+        split.cut,
+        region.margin,
+        region.low.x,
+        region.low.y,
+        region.low.z,
+        region.high.x,
+        region.high.y,
+        region.high.z,
+    );
+    let mut unmapped = 0;
+    for primitive in gltf_primitives.iter_mut() {
+        for triangle in primitive.triangles.iter_mut() {
+            *triangle = triangle.and_then(|old| {
+                let pieces = &split.pieces_of[old as usize];
+                if pieces.len() == 1 {
+                    Some(pieces.start)
+                } else {
+                    unmapped += 1;
+                    None
+                }
+            });
+        }
+    }
+    if unmapped > 0 {
+        warn(
+            warnings,
+            format!(
+                "{}: {unmapped} glTF triangle(s) reaching far outside the detail region were cut for a coarser lightmap there; an engine adopting this file gets no lightmap on them: set `[lightmap] detail = \"uniform\"` (or a `detail = \"box\"` that holds them) to keep them whole",
+                mesh_path.display()
+            ),
+        );
+    }
+    fixed
 }
 
 /// A camera on +Z that sees the whole bounding box, for meshes without one.
