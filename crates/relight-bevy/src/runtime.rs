@@ -766,7 +766,7 @@ fn start_running(
     } else {
         Vec::new()
     };
-    let (lo, hi) = scene.mesh.bounds();
+    let (lo, hi) = scene.content_bounds();
     let range = scene_range(scene);
     commands.entity(entity).with_children(|children| {
         if spawn_static_meshes {

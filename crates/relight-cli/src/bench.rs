@@ -170,7 +170,7 @@ pub fn run(
     let layout = relight_engine::LightmapLayout::new(&context.atlas);
     let mut lightmap_bytes = vec![0u8; layout.texel_count() * 8];
     let (mut lightmap_samples, mut engine_frames) = (Vec::new(), Vec::new());
-    let (lo, hi) = context.scene.mesh.bounds();
+    let (lo, hi) = context.scene.content_bounds();
     let grid =
         (volume_cells > 0).then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells));
     let mut volume_texels = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];

@@ -781,7 +781,7 @@ fn run(cli: Cli) -> Result<()> {
                     moving_mesh_poses: None,
                 })?;
             }
-            let (lo, hi) = context.scene.mesh.bounds();
+            let (lo, hi) = context.scene.content_bounds();
             let settings = relight_engine::ExportSettings {
                 format,
                 zstd_level: (zstd > 0).then_some(zstd),

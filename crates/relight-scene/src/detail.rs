@@ -145,6 +145,21 @@ impl Scene {
     pub fn detail_region(&self) -> Option<DetailRegion> {
         DetailRegion::of(&self.mesh, self.lightmap_layout)
     }
+
+    /// Where the scene's content is: the detail region and its
+    /// full-density margin when the lightmap coarsens outside it, else the
+    /// mesh's bounds. An irradiance volume covers this, not a ground plane
+    /// 200 m across (the classroom's volume was 16 x 1 x 16 voxels of 14 m).
+    pub fn content_bounds(&self) -> (Vec3, Vec3) {
+        let (low, high) = self.mesh.bounds();
+        match self.detail_region() {
+            Some(region) => (
+                (region.low - Vec3::splat(region.margin)).max(low),
+                (region.high + Vec3::splat(region.margin)).min(high),
+            ),
+            None => (low, high),
+        }
+    }
 }
 
 /// Bounds of the triangles that each hold less than [`OUTLIER_AREA_SHARE`]

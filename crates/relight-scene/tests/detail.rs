@@ -114,6 +114,18 @@ fn a_ground_plane_gives_its_texels_to_the_building() {
 }
 
 #[test]
+fn content_bounds_hold_the_building_not_the_ground() {
+    let dir = TempDir::new("detail-content");
+    let scene = load(&dir, "");
+    let margin = scene.detail_region().unwrap().margin;
+    let (low, high) = scene.content_bounds();
+    assert_eq!(low, Vec3::new(-3.0 - margin, 0.0, -4.0 - margin));
+    assert_eq!(high, Vec3::new(3.0 + margin, 3.0, 4.0 + margin));
+    let uniform = load(&dir, "[lightmap]\ndetail = \"uniform\"\n");
+    assert_eq!(uniform.content_bounds(), uniform.mesh.bounds());
+}
+
+#[test]
 fn the_same_file_gives_the_same_atlas() {
     let dir = TempDir::new("detail-determinism");
     let first = Atlas::build(&load(&dir, ""), TexelDensity::Automatic { minimum: 128 }).unwrap();
