@@ -28,6 +28,9 @@ pub struct Geometry<'a> {
     pub emitters: &'a Emitters,
     pub ray_epsilon: f32,
     pub dynamic: Option<&'a DynamicWorld>,
+    /// The scene's content bounds when its lightmap coarsens outside them
+    /// ([`Scene::content_bounds`]), else `None`.
+    pub content: Option<(Vec3, Vec3)>,
 }
 
 impl Geometry<'_> {
@@ -68,7 +71,28 @@ impl Geometry<'_> {
 
     /// Centre and radius of a sphere around everything that can be lit.
     pub fn bounding_sphere(&self) -> (Vec3, f32) {
-        let (mut low, mut high) = self.bvh.bounds();
+        self.sphere_with_moving_meshes(self.bvh.bounds())
+    }
+
+    /// What a directional light's map covers: the centre and radius of a
+    /// sphere around the scene's content and moving meshes, and how far
+    /// back along the light its rays start, past everything that can cast
+    /// a shadow on it. Without content bounds the sphere is the whole
+    /// scene's; with them, a ground plane 200 m across no longer spreads
+    /// the map's texels (and VALs) over land outside the building.
+    pub fn directional_extent(&self) -> (Vec3, f32, f32) {
+        let (centre, radius) = self.bounding_sphere();
+        match self.content {
+            None => (centre, radius, 2.0 * radius),
+            Some(content) => {
+                let (content_centre, content_radius) = self.sphere_with_moving_meshes(content);
+                let back = content_centre.distance(centre) + 2.0 * radius;
+                (content_centre, content_radius, back)
+            }
+        }
+    }
+
+    fn sphere_with_moving_meshes(&self, (mut low, mut high): (Vec3, Vec3)) -> (Vec3, f32) {
         if let Some(world) = self.dynamic {
             if !world.triangle_normals.is_empty() {
                 let (dynamic_low, dynamic_high) = world.bvh.bounds();

@@ -9,9 +9,12 @@
 //!    (VAL), a Lambertian disc re-emitting the flux it received times the
 //!    albedo. Points of a captured point cloud (PLY) are added as VALs.
 //! 2. Gathering (equations 3 to 7) at the sparse points, which are spread
-//!    over every mesh when it is loaded and fixed to it: irradiance and the
-//!    averaged light position, diffuse and (for glossy materials) glossy.
-//!    With `visibility` (the default), a point gathers a VAL only if it
+//!    over every mesh when it is loaded and fixed to it (over the static
+//!    scene by area times the lightmap's density, which falls off outside
+//!    the scene's detail region, `relight_scene::detail`; a directional
+//!    light's map likewise covers the scene's content bounds): irradiance
+//!    and the averaged light position, diffuse and (for glossy materials)
+//!    glossy. With `visibility` (the default), a point gathers a VAL only if it
 //!    sees the VAL's anchor, the static point nearest the VAL on its side
 //!    of the surface; which static points see each other is traced once,
 //!    when the scene is loaded (see [`visibility`]).
@@ -421,20 +424,29 @@ impl SparsePoints {
     /// Spreads `count` points over `mesh` (in the mesh's own space) and
     /// appends them as discs of the mesh's area per point; returns their
     /// anchors and that area.
+    /// Spreads `count` points over `mesh` (by area times `weights`, see
+    /// [`points::spread_points`]); returns their anchors and the area
+    /// each stands for where the weight is 1. A point's disc covers that
+    /// area over its triangle's weight.
     fn add_mesh(
         &mut self,
         mesh: &Mesh,
         count: usize,
         seed: u64,
+        weights: Option<&[f32]>,
         glossy_exponent: impl Fn(usize) -> f32,
     ) -> (Vec<Anchor>, f32) {
-        let anchors = points::spread_points(mesh, count, seed);
-        let area_per_point = mesh.total_area() as f32 / anchors.len().max(1) as f32;
+        let anchors = points::spread_points(mesh, count, seed, weights);
+        let area_per_point = match weights {
+            Some(weights) => relight_scene::AreaTable::weighted(mesh, weights).total() as f32,
+            None => mesh.total_area() as f32,
+        } / anchors.len().max(1) as f32;
         for anchor in &anchors {
+            let triangle = anchor.triangle as usize;
             self.positions.push(points::anchor_position(mesh, *anchor));
-            self.normals
-                .push(mesh.geometric_normal(anchor.triangle as usize));
-            self.radius_sq.push(area_per_point / PI);
+            self.normals.push(mesh.geometric_normal(triangle));
+            let weight = weights.map_or(1.0, |weights| weights[triangle]);
+            self.radius_sq.push(area_per_point / weight / PI);
             self.glossy_exponent
                 .push(glossy_exponent(anchor.triangle as usize));
         }
@@ -481,6 +493,9 @@ pub struct LightSkin {
     /// `visibility` off), and how many static points there are.
     visibility: PointVisibility,
     static_points: usize,
+    /// [`Scene::content_bounds`] when the scene has a detail region: what
+    /// directional lights' maps cover.
+    content_bounds: Option<(Vec3, Vec3)>,
     point_diffuse: Vpls,
     point_glossy: Vpls,
     texel_interpolation: Interpolation,
@@ -534,10 +549,14 @@ impl LightSkin {
                 0.0
             }
         };
+        // Points follow the lightmap's density: a ground plane far outside
+        // the building gets few (the classroom's took 98 % of them).
+        let detail_weights = scene.detail_weights();
         let (_, area_per_point) = sparse.add_mesh(
             &scene.mesh,
             params.points as usize,
             params.seed,
+            detail_weights.as_deref(),
             glossy_exponent,
         );
         sparse.sort_spatially();
@@ -579,6 +598,7 @@ impl LightSkin {
                 &mesh.mesh,
                 params.dynamic_points as usize,
                 params.seed,
+                None,
                 |_| 0.0,
             );
             let normals = vertex_normals(&mesh.mesh);
@@ -627,6 +647,7 @@ impl LightSkin {
             occluders: occlusion::Occluders::default(),
             visibility,
             static_points,
+            content_bounds: scene.detail_region().map(|_| scene.content_bounds()),
             point_diffuse: Vpls::zeroed(point_count),
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,
@@ -688,6 +709,7 @@ impl LightSkin {
             emitters: &self.context.emitters,
             ray_epsilon: relight_trace::direct::ray_epsilon_for(&self.context.bvh),
             dynamic: self.dynamic_world.as_ref(),
+            content: self.content_bounds,
         }
     }
 
@@ -743,7 +765,9 @@ impl LightSkin {
         if self.vals.count == 0 {
             return 0.0;
         }
-        let (low, high) = self.context.bvh.bounds();
+        let (low, high) = self
+            .content_bounds
+            .unwrap_or_else(|| self.context.bvh.bounds());
         let diagonal_sq = (high - low).length_squared().max(1e-12) as f64;
         let mean_luminance: f64 = self.vals.power_luminance[..self.vals.count]
             .iter()

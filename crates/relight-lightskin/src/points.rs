@@ -36,8 +36,15 @@ const CANDIDATES_PER_POINT: usize = 8;
 /// About `count` points spread evenly over `set` (fewer only when `set`
 /// has no area). `seed` rotates the Halton candidates (Cranley-Patterson),
 /// so different seeds give different, equally even, distributions.
-pub fn spread_points(mesh: &Mesh, count: usize, seed: u64) -> Vec<Anchor> {
-    let areas = AreaTable::new(mesh);
+///
+/// With `weights` (one per triangle, [`relight_scene::Scene::detail_weights`])
+/// a triangle's share of the points follows its area times its weight, so
+/// points thin out with the lightmap where it coarsens.
+pub fn spread_points(mesh: &Mesh, count: usize, seed: u64, weights: Option<&[f32]>) -> Vec<Anchor> {
+    let areas = match weights {
+        Some(weights) => AreaTable::weighted(mesh, weights),
+        None => AreaTable::new(mesh),
+    };
     let total_area = areas.total();
     if count == 0 || total_area <= 0.0 {
         return Vec::new();
@@ -47,7 +54,11 @@ pub fn spread_points(mesh: &Mesh, count: usize, seed: u64) -> Vec<Anchor> {
         radical_inverse(11, seed),
         radical_inverse(13, seed),
     ];
-    let candidates: Vec<(Anchor, Vec3)> = (0..(count * CANDIDATES_PER_POINT) as u64)
+    // A candidate's distance to its neighbours scales with its triangle's
+    // density, 1/sqrt(weight): points on a ring of 4x coarser texels stand
+    // 4x apart, and each ring is thinned against itself (its own grid), or
+    // the first pass would accept every candidate where they are sparse.
+    let candidates: Vec<(Anchor, Vec3, f32)> = (0..(count * CANDIDATES_PER_POINT) as u64)
         .map(|index| {
             let rotate =
                 |base: u32, offset: f64| (radical_inverse(base, index + 1) + offset).fract();
@@ -60,38 +71,45 @@ pub fn spread_points(mesh: &Mesh, count: usize, seed: u64) -> Vec<Anchor> {
                 triangle,
                 barycentric,
             };
-            (anchor, anchor_position(mesh, anchor))
+            let scale = weights.map_or(1.0, |weights| 1.0 / weights[triangle as usize].sqrt());
+            (anchor, anchor_position(mesh, anchor), scale)
         })
         .collect();
     // Hexagonal packing of `count` discs of diameter d covers
     // count * sqrt(3)/2 * d^2; dart throwing stalls well below that.
     let hexagonal = (2.0 * total_area / (3f64.sqrt() * count as f64)).sqrt() as f32;
     let mut spacing = 0.8 * hexagonal;
-    let mut accepted: Vec<(Anchor, Vec3)> = Vec::with_capacity(count);
+    let mut accepted: Vec<(Anchor, Vec3, f32)> = Vec::with_capacity(count);
     let mut taken = vec![false; candidates.len()];
     while accepted.len() < count && spacing > hexagonal * 1e-4 {
-        let mut grid: HashMap<[i32; 3], Vec<Vec3>> = HashMap::new();
-        let cell_of = |p: Vec3| (p / spacing).floor().as_ivec3().to_array();
-        for &(_, position) in &accepted {
-            grid.entry(cell_of(position)).or_default().push(position);
+        let mut grid: HashMap<(u32, [i32; 3]), Vec<Vec3>> = HashMap::new();
+        let cell_of = |p: Vec3, scale: f32| {
+            let cell = (p / (spacing * scale)).floor().as_ivec3().to_array();
+            (scale.to_bits(), cell)
+        };
+        for &(_, position, scale) in &accepted {
+            grid.entry(cell_of(position, scale))
+                .or_default()
+                .push(position);
         }
-        for (index, &(anchor, position)) in candidates.iter().enumerate() {
+        for (index, &(anchor, position, scale)) in candidates.iter().enumerate() {
             if accepted.len() >= count {
                 break;
             }
             if taken[index] {
                 continue;
             }
-            let cell = cell_of(position);
+            let (ring, cell) = cell_of(position, scale);
+            let distance = spacing * scale;
             let mut free = true;
             'search: for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -1..=1 {
-                        let key = [cell[0] + dx, cell[1] + dy, cell[2] + dz];
+                        let key = (ring, [cell[0] + dx, cell[1] + dy, cell[2] + dz]);
                         if let Some(points) = grid.get(&key) {
                             if points
                                 .iter()
-                                .any(|p| p.distance_squared(position) < spacing * spacing)
+                                .any(|p| p.distance_squared(position) < distance * distance)
                             {
                                 free = false;
                                 break 'search;
@@ -102,13 +120,13 @@ pub fn spread_points(mesh: &Mesh, count: usize, seed: u64) -> Vec<Anchor> {
             }
             if free {
                 taken[index] = true;
-                accepted.push((anchor, position));
-                grid.entry(cell).or_default().push(position);
+                accepted.push((anchor, position, scale));
+                grid.entry((ring, cell)).or_default().push(position);
             }
         }
         spacing *= 0.85;
     }
-    accepted.into_iter().map(|(anchor, _)| anchor).collect()
+    accepted.into_iter().map(|(anchor, _, _)| anchor).collect()
 }
 
 /// Uniform hash grid over points for nearest-neighbour queries.

@@ -541,7 +541,8 @@ fn perspective_map(
 }
 
 /// An orthographic map over the bounding sphere of everything that can be
-/// lit, perpendicular to `direction`.
+/// lit (of the scene's content, where it has content bounds),
+/// perpendicular to `direction`.
 fn orthographic_map(
     geometry: &Geometry,
     direction: Vec3,
@@ -549,11 +550,11 @@ fn orthographic_map(
     resolution: u32,
     out: &mut Vals,
 ) {
-    let (centre, radius) = geometry.bounding_sphere();
+    let (centre, radius, back) = geometry.directional_extent();
     let (right, up) = relight_core::sampling::orthonormal_basis(direction);
     let side = 2.0 * radius / resolution as f32;
     let texel_area = side * side;
-    let start = centre - direction * (2.0 * radius);
+    let start = centre - direction * back;
     map_texels(resolution, radius, out, |u, v| {
         let hit = geometry.first_hit(start + right * u + up * v, direction)?;
         let cos_hit = hit.normal.dot(direction).abs();

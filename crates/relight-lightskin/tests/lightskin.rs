@@ -1012,3 +1012,69 @@ fn glossy_light_follows_the_frames_camera() {
         "{elsewhere} against {scene_camera}"
     );
 }
+
+/// A 120 m ground of two triangles under an open-topped 6 x 3 x 8 m room of
+/// wall quads, lit by a low sun, loaded from a file as a user's would be (so
+/// the ground is cut into rings of coarser lightmap texels).
+fn ground_and_room_scene() -> Scene {
+    let folder =
+        std::env::temp_dir().join(format!("relight-lightskin-ground-{}", std::process::id()));
+    std::fs::create_dir_all(&folder).unwrap();
+    let mut obj = String::from("v -60 0 -60\nv -60 0 60\nv 60 0 60\nv 60 0 -60\nf 1 2 3 4\n");
+    let corners = [(-3.0, -4.0), (3.0, -4.0), (3.0, 4.0), (-3.0, 4.0)];
+    for side in 0..4 {
+        let ((x0, z0), (x1, z1)) = (corners[side], corners[(side + 1) % 4]);
+        let base = 5 + side * 4;
+        obj.push_str(&format!(
+            "v {x0} 0 {z0}\nv {x1} 0 {z1}\nv {x1} 3 {z1}\nv {x0} 3 {z0}\nf {} {} {} {}\n",
+            base,
+            base + 3,
+            base + 2,
+            base + 1
+        ));
+    }
+    std::fs::write(folder.join("mesh.obj"), obj).unwrap();
+    std::fs::write(
+        folder.join("scene.toml"),
+        "mesh = \"mesh.obj\"\n[[lights]]\nkind = \"directional\"\ndirection = [0.5, -0.6, 0.3]\nirradiance = [3, 3, 3]\n",
+    )
+    .unwrap();
+    let scene = relight_scene::load_scene(&folder.join("scene.toml")).unwrap();
+    let _ = std::fs::remove_dir_all(&folder);
+    scene
+}
+
+/// Sparse points and a sun's VALs follow the lightmap's detail: a ground
+/// plane 100 times the room's area no longer takes nearly all of them.
+#[test]
+fn points_and_sun_vals_stay_where_the_detail_is() {
+    let context = context_of(ground_and_room_scene(), TexelDensity::MetresPerTexel(0.25));
+    let margin = context
+        .scene
+        .detail_region()
+        .expect("the ground reaches out")
+        .margin;
+    let near_room =
+        |p: Vec3| p.x.abs() < 3.0 + margin && p.z.abs() < 4.0 + margin && p.y < 3.0 + margin;
+    let technique = updated(&context, LightSkinParams::default());
+    let points = technique.sparse_points();
+    let near = points.iter().filter(|&&p| near_room(p)).count();
+    // By area the room and its margin hold 1.1 % of the surface; weighted by
+    // the lightmap's density about 96 %.
+    assert!(
+        near as f64 > 0.8 * points.len() as f64,
+        "{near} of {} sparse points near the room",
+        points.len()
+    );
+    // The sun's map covers the room's surroundings, not the whole ground:
+    // its 48 x 48 texels over the 170 m ground put about 4 VALs in the room.
+    let vals = technique.vals();
+    let in_room = (0..vals.count)
+        .filter(|&index| vals.px[index].abs() < 3.0 && vals.pz[index].abs() < 4.0)
+        .count();
+    assert!(
+        in_room > 100,
+        "{in_room} of {} VALs in the room",
+        vals.count
+    );
+}

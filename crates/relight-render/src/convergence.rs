@@ -52,12 +52,13 @@ pub struct SpacePoints {
     pub normals: Vec<glam::Vec3>,
 }
 
-/// Grid cells of [`SpacePoints`]: about 8 x 8 x 8 over the bounds.
+/// Grid cells of [`SpacePoints`]: about 8 x 8 x 8 over the scene's content
+/// bounds (not a ground plane far outside; `Scene::content_bounds`).
 const SPACE_CELLS: f32 = 512.0;
 
 impl SpacePoints {
     pub fn of(context: &SceneContext) -> Self {
-        let (lo, hi) = context.scene.mesh.bounds();
+        let (lo, hi) = context.scene.content_bounds();
         let extent = (hi - lo).max(glam::Vec3::splat(1e-3));
         let cell = (extent.x * extent.y * extent.z / SPACE_CELLS).cbrt();
         let dims = (extent / cell).ceil().max(glam::Vec3::ONE).as_uvec3();

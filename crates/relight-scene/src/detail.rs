@@ -146,6 +146,24 @@ impl Scene {
         DetailRegion::of(&self.mesh, self.lightmap_layout)
     }
 
+    /// Each triangle's density relative to the detail region's, the
+    /// lightmap's: 1 within ring 0, 1/16^k in ring k (texel edges 4^k
+    /// longer). `None` when the lightmap is uniform. Techniques that spread
+    /// points by area weight it by this, so that a ground plane far
+    /// outside does not take them from the building.
+    pub fn detail_weights(&self) -> Option<Vec<f32>> {
+        let region = self.detail_region()?;
+        Some(
+            (0..self.mesh.triangles.len())
+                .map(|triangle| {
+                    let scale =
+                        DetailRegion::texel_scale(region.ring_of_triangle(&self.mesh, triangle));
+                    1.0 / (scale * scale)
+                })
+                .collect(),
+        )
+    }
+
     /// Where the scene's content is: the detail region and its
     /// full-density margin when the lightmap coarsens outside it, else the
     /// mesh's bounds. An irradiance volume covers this, not a ground plane

@@ -81,7 +81,20 @@ impl AreaTable {
         Self { cumulative }
     }
 
-    /// Total area (m^2).
+    /// Running sums of each triangle's area times its weight: with
+    /// [`Scene::detail_weights`], picks follow the lightmap's density.
+    pub fn weighted(mesh: &Mesh, weights: &[f32]) -> Self {
+        let mut running = 0.0f64;
+        let cumulative = (0..mesh.triangles.len())
+            .map(|triangle| {
+                running += mesh.area(triangle) as f64 * weights[triangle] as f64;
+                running
+            })
+            .collect();
+        Self { cumulative }
+    }
+
+    /// Total area (m^2; weighted area for [`Self::weighted`]).
     pub fn total(&self) -> f64 {
         self.cumulative.last().copied().unwrap_or(0.0)
     }
