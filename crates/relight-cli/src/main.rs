@@ -922,13 +922,8 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
             .filter(|&&position| region.gap(position, position) < region.margin)
             .count();
         say!(
-            "detail region   [{:.1}, {:.1}, {:.1}] .. [{:.1}, {:.1}, {:.1}] and {:.1} m around it at full density ({near} receivers, {:.1} %); texel edges 4x longer ring by ring outside",
-            region.low.x,
-            region.low.y,
-            region.low.z,
-            region.high.x,
-            region.high.y,
-            region.high.z,
+            "detail region   {} and {:.1} m around it at full density ({near} receivers, {:.1} %); texel edges 4x longer ring by ring outside",
+            region.describe_box(),
             region.margin,
             100.0 * near as f64 / atlas.receivers.len().max(1) as f64
         );

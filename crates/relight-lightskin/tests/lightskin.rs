@@ -1020,19 +1020,7 @@ fn ground_and_room_scene() -> Scene {
     let folder =
         std::env::temp_dir().join(format!("relight-lightskin-ground-{}", std::process::id()));
     std::fs::create_dir_all(&folder).unwrap();
-    let mut obj = String::from("v -60 0 -60\nv -60 0 60\nv 60 0 60\nv 60 0 -60\nf 1 2 3 4\n");
-    let corners = [(-3.0, -4.0), (3.0, -4.0), (3.0, 4.0), (-3.0, 4.0)];
-    for side in 0..4 {
-        let ((x0, z0), (x1, z1)) = (corners[side], corners[(side + 1) % 4]);
-        let base = 5 + side * 4;
-        obj.push_str(&format!(
-            "v {x0} 0 {z0}\nv {x1} 0 {z1}\nv {x1} 3 {z1}\nv {x0} 3 {z0}\nf {} {} {} {}\n",
-            base,
-            base + 3,
-            base + 2,
-            base + 1
-        ));
-    }
+    let obj = relight_scene::generate::ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
     std::fs::write(folder.join("mesh.obj"), obj).unwrap();
     std::fs::write(
         folder.join("scene.toml"),

@@ -89,6 +89,14 @@ impl DetailRegion {
         reaches_out.then_some(region)
     }
 
+    /// The box as `[x, y, z] .. [x, y, z]` to a tenth of a metre, for
+    /// messages.
+    pub fn describe_box(&self) -> String {
+        let [a, b, c] = self.low.to_array();
+        let [d, e, f] = self.high.to_array();
+        format!("[{a:.1}, {b:.1}, {c:.1}] .. [{d:.1}, {e:.1}, {f:.1}]")
+    }
+
     /// Outer edge of ring `ring`, in metres beyond the box.
     pub fn ring_edge(&self, ring: u32) -> f32 {
         self.margin * ((1u32 << (ring + 1)) - 1) as f32

@@ -69,6 +69,33 @@ pub fn atrium(target_triangles: usize, seed: u64) -> Result<Atrium, SceneError> 
     })
 }
 
+/// OBJ faces (no materials) of a square ground of two triangles,
+/// `ground_side` metres across, under an open-topped room of four wall
+/// quads facing in, `room` = [width, height, depth] centred on the origin:
+/// a building whose ground plane reaches far out, in small.
+pub fn ground_and_room_obj(ground_side: f32, [width, height, depth]: [f32; 3]) -> String {
+    let half = ground_side / 2.0;
+    let mut obj = String::new();
+    for (x, z) in [(-half, -half), (-half, half), (half, half), (half, -half)] {
+        obj.push_str(&format!("v {x} 0 {z}\n"));
+    }
+    obj.push_str("f 1 2 3 4\n");
+    let (x, z) = (width / 2.0, depth / 2.0);
+    let corners = [(-x, -z), (x, -z), (x, z), (-x, z)];
+    for side in 0..4 {
+        let ((x0, z0), (x1, z1)) = (corners[side], corners[(side + 1) % 4]);
+        let base = 5 + side * 4;
+        obj.push_str(&format!(
+            "v {x0} 0 {z0}\nv {x1} 0 {z1}\nv {x1} {height} {z1}\nv {x0} {height} {z0}\nf {} {} {} {}\n",
+            base,
+            base + 3,
+            base + 2,
+            base + 1
+        ));
+    }
+    obj
+}
+
 /// Writes `atrium.obj`, `atrium.mtl` and `scene.toml` into `folder`
 /// (created if needed) and returns the path of `scene.toml`.
 pub fn write_atrium(folder: &Path, target_triangles: usize) -> Result<PathBuf, SceneError> {

@@ -685,16 +685,11 @@ fn cut_for_lightmap_detail(
         return fixed;
     }
     tracing::info!(
-        "{}: cut {} triangle(s) reaching more than {:.1} m outside the detail region [{:.1}, {:.1}, {:.1}]..[{:.1}, {:.1}, {:.1}] so that the lightmap coarsens with distance (`[lightmap] detail = \"uniform\"` keeps them whole)",
+        "{}: cut {} triangle(s) reaching more than {:.1} m outside the detail region {} so that the lightmap coarsens with distance (`[lightmap] detail = \"uniform\"` keeps them whole)",
         mesh_path.display(),
         split.cut,
         region.margin,
-        region.low.x,
-        region.low.y,
-        region.low.z,
-        region.high.x,
-        region.high.y,
-        region.high.z,
+        region.describe_box(),
     );
     let mut unmapped = 0;
     for primitive in gltf_primitives.iter_mut() {

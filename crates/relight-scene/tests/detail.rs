@@ -13,27 +13,8 @@ use relight_scene::{load_scene, parse_scene_file, Scene, SceneError};
 /// A 120 m ground quad (two triangles, as real models have it) under a
 /// 6 x 3 x 8 m room of wall quads: the classroom's shape in small.
 fn ground_and_room_obj() -> String {
-    let mut obj = String::from("mtllib mesh.mtl\nusemtl white\n");
-    let half = 60.0;
-    for (x, z) in [(-half, -half), (-half, half), (half, half), (half, -half)] {
-        obj.push_str(&format!("v {x} 0 {z}\n"));
-    }
-    obj.push_str("f 1 2 3 4\n");
-    // Four walls, facing in, each its own quad.
-    let corners = [(-3.0, -4.0), (3.0, -4.0), (3.0, 4.0), (-3.0, 4.0)];
-    for side in 0..4 {
-        let (x0, z0) = corners[side];
-        let (x1, z1) = corners[(side + 1) % 4];
-        let base = 5 + side * 4;
-        obj.push_str(&format!(
-            "v {x0} 0 {z0}\nv {x1} 0 {z1}\nv {x1} 3 {z1}\nv {x0} 3 {z0}\nf {} {} {} {}\n",
-            base,
-            base + 3,
-            base + 2,
-            base + 1
-        ));
-    }
-    obj
+    let faces = relight_scene::generate::ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
+    format!("mtllib mesh.mtl\nusemtl white\n{faces}")
 }
 
 fn load(dir: &TempDir, lightmap_section: &str) -> Scene {
