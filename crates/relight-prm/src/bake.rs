@@ -92,7 +92,6 @@ pub fn estimate(
     let targets = PaneTargets::new(context, &pane_points);
     let receiver_count = targets.positions.len();
     let entries = sample_entries(&context.scene, params.entries as usize)?;
-    let area_per_entry = context.scene.mesh.total_area() as f32 / params.entries as f32;
     let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
     // Entries are a Halton sequence whose base-2 digits pick the triangle:
     // every 64th entry would all lie in the first 64th of the area, so the
@@ -104,8 +103,7 @@ pub fn estimate(
     let mut sample_rays = Vec::new();
     for pilot in 0..pilot_count {
         let entry = (pilot as u64 * PILOT_SPREAD % params.entries as u64) as usize;
-        let vertices =
-            light_path_vertices(context, &entries, entry, area_per_entry, params, epsilon);
+        let vertices = light_path_vertices(context, &entries, entry, params, epsilon);
         pilots += 1;
         lights += vertices.len() as u64;
         // One closest-hit ray leaves every vertex but the last of a path.
@@ -262,14 +260,15 @@ impl PrmPart {
         let receiver_count = context.atlas.receivers.len();
         let own_clusters = shard.range(params.clusters as usize);
         let scene = &context.scene;
-        let total_area = scene.mesh.total_area() as f32;
         progress.start("prm pane points", 1);
         let pane_points = PanePoints::select(context, params.pane_spacing(&context.atlas));
         let targets = PaneTargets::new(context, &pane_points);
         progress.finish();
         progress.start("prm entry points", 1);
         let entries = sample_entries(scene, params.entries as usize)?;
-        let (lo, hi) = scene.mesh.bounds();
+        // The content's diagonal: a ground plane far outside would shrink
+        // every distance between entries in the clustering's metric.
+        let (lo, hi) = scene.content_bounds();
         let diagonal = (hi - lo).length().max(1e-6);
         let entry_clusters = cluster_entries(
             &entries.positions,
@@ -280,8 +279,6 @@ impl PrmPart {
             params.seed,
         );
         progress.finish();
-        let area_per_entry = total_area / params.entries as f32;
-        let disc_radius_squared = area_per_entry / std::f32::consts::PI;
 
         // Members of each cluster, in entry order, for deterministic sums.
         let mut members: Vec<Vec<u32>> = vec![Vec::new(); params.clusters as usize];
@@ -301,14 +298,10 @@ impl PrmPart {
                 let mut pane = vec![Rgb::ZERO; pane_length];
                 let mut own_totals: Vec<f64> = Vec::with_capacity(cluster_members.len());
                 for &entry in cluster_members {
-                    let lights = light_path_vertices(
-                        context,
-                        &entries,
-                        entry as usize,
-                        area_per_entry,
-                        params,
-                        epsilon,
-                    );
+                    let lights =
+                        light_path_vertices(context, &entries, entry as usize, params, epsilon);
+                    let disc_radius_squared =
+                        entries.areas[entry as usize] / std::f32::consts::PI;
                     own_totals.push(
                         lights
                             .iter()
@@ -578,6 +571,7 @@ impl PrmBake {
             positions: vec![position],
             normals: vec![normal],
             albedos: vec![albedo],
+            areas: vec![area],
         };
         let params = PrmParams {
             entries: 1,
@@ -587,7 +581,7 @@ impl PrmBake {
             ..PrmParams::default()
         };
         let epsilon = relight_trace::direct::ray_epsilon_for(&context.bvh);
-        let lights = light_path_vertices(context, &entries, 0, area, &params, epsilon);
+        let lights = light_path_vertices(context, &entries, 0, &params, epsilon);
         let disc_radius_squared = area / std::f32::consts::PI;
         let receivers = context.atlas.receivers.len();
         let targets = PaneTargets::new(context, &PanePoints::every_receiver());
@@ -793,13 +787,24 @@ pub(crate) struct Entries {
     pub positions: Vec<Vec3>,
     pub normals: Vec<Vec3>,
     pub albedos: Vec<Rgb>,
+    /// The surface each entry stands for (m^2): its virtual light's flux
+    /// per unit irradiance over its albedo, and its disc.
+    pub areas: Vec<f32>,
 }
 
 /// Entry points distributed by area with the Halton sequence (bases 2 for
-/// the triangle, 3 and 5 within it), so they cover surfaces evenly.
+/// the triangle, 3 and 5 within it), so they cover surfaces evenly. Where
+/// the lightmap coarsens outside the scene's detail region the area is
+/// weighted by its density (`Scene::detail_weights`) and each entry there
+/// stands for as much more surface: a ground plane far outside would
+/// otherwise take nearly every entry (the classroom's took 98 %).
 pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, TechniqueError> {
     let mesh = &scene.mesh;
-    let areas = relight_scene::AreaTable::new(mesh);
+    let weights = scene.detail_weights();
+    let areas = match &weights {
+        Some(weights) => relight_scene::AreaTable::weighted(mesh, weights),
+        None => relight_scene::AreaTable::new(mesh),
+    };
     let running = areas.total();
     if running <= 0.0 {
         return Err(TechniqueError::Other(
@@ -810,7 +815,9 @@ pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, Tec
         positions: Vec::with_capacity(count),
         normals: Vec::with_capacity(count),
         albedos: Vec::with_capacity(count),
+        areas: Vec::with_capacity(count),
     };
+    let area_per_entry = running as f32 / count as f32;
     for index in 0..count as u64 {
         // Index 0 of Halton is the origin; start at 1.
         let triangle = areas.triangle_at(radical_inverse(2, index + 1) * running);
@@ -822,6 +829,10 @@ pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, Tec
         entries.positions.push(mesh.point_at(triangle, barycentric));
         entries.normals.push(mesh.geometric_normal(triangle));
         entries.albedos.push(scene.albedo_at(triangle, barycentric));
+        entries.areas.push(match &weights {
+            Some(weights) => area_per_entry / weights[triangle],
+            None => area_per_entry,
+        });
     }
     Ok(entries)
 }
@@ -950,7 +961,6 @@ fn light_path_vertices(
     context: &SceneContext,
     entries: &Entries,
     entry: usize,
-    area_per_entry: f32,
     params: &PrmParams,
     epsilon: f32,
 ) -> Vec<VirtualLight> {
@@ -959,7 +969,7 @@ fn light_path_vertices(
     let start = VirtualLight {
         position: entries.positions[entry],
         normal: entries.normals[entry],
-        flux: entries.albedos[entry] * area_per_entry,
+        flux: entries.albedos[entry] * entries.areas[entry],
     };
     let mut lights = vec![start];
     for path in 0..paths {
@@ -1096,4 +1106,55 @@ fn gather(
         added += luminance(contribution) as f64;
     }
     added
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 120 m two-triangle ground under an open 6 x 3 x 8 m room, loaded
+    /// from a file so that the ground is cut into rings of coarser texels.
+    fn ground_and_room() -> Scene {
+        let folder =
+            std::env::temp_dir().join(format!("relight-prm-ground-{}", std::process::id()));
+        std::fs::create_dir_all(&folder).unwrap();
+        let obj = relight_scene::generate::ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
+        std::fs::write(folder.join("mesh.obj"), obj).unwrap();
+        std::fs::write(folder.join("scene.toml"), "mesh = \"mesh.obj\"\n").unwrap();
+        let scene = relight_scene::load_scene(&folder.join("scene.toml")).unwrap();
+        let _ = std::fs::remove_dir_all(&folder);
+        scene
+    }
+
+    #[test]
+    fn entries_follow_the_lightmaps_detail_and_stand_for_their_area() {
+        let scene = ground_and_room();
+        let region = scene.detail_region().expect("the ground reaches far out");
+        let entries = sample_entries(&scene, 4096).unwrap();
+        let near = entries
+            .positions
+            .iter()
+            .filter(|p| region.gap(**p, **p) < region.margin)
+            .count();
+        // By area alone the room and its margin hold 1.1 % of the surface.
+        assert!(near > 3600, "{near} of 4096 entries near the room");
+        // Far entries stand for 16^k times the surface of near ones.
+        let near_area = entries.areas[entries
+            .positions
+            .iter()
+            .position(|p| region.gap(*p, *p) == 0.0)
+            .unwrap()];
+        let weights = scene.detail_weights().unwrap();
+        let weighted_total = relight_scene::AreaTable::weighted(&scene.mesh, &weights).total();
+        assert!((near_area - weighted_total as f32 / 4096.0).abs() < 1e-3 * near_area);
+        let farthest = entries.areas.iter().copied().fold(0.0, f32::max);
+        assert!(farthest >= 16.0 * near_area, "{farthest} against {near_area}");
+
+        // Without a detail region every entry stands for the same area.
+        let mut uniform = scene.clone();
+        uniform.lightmap_layout.detail = relight_scene::detail::LightmapDetail::Uniform;
+        let entries = sample_entries(&uniform, 4096).unwrap();
+        let each = uniform.mesh.total_area() as f32 / 4096.0;
+        assert!(entries.areas.iter().all(|&area| area == each));
+    }
 }
