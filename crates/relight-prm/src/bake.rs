@@ -300,8 +300,7 @@ impl PrmPart {
                 for &entry in cluster_members {
                     let lights =
                         light_path_vertices(context, &entries, entry as usize, params, epsilon);
-                    let disc_radius_squared =
-                        entries.areas[entry as usize] / std::f32::consts::PI;
+                    let disc_radius_squared = entries.areas[entry as usize] / std::f32::consts::PI;
                     own_totals.push(
                         lights
                             .iter()
@@ -1148,7 +1147,10 @@ mod tests {
         let weighted_total = relight_scene::AreaTable::weighted(&scene.mesh, &weights).total();
         assert!((near_area - weighted_total as f32 / 4096.0).abs() < 1e-3 * near_area);
         let farthest = entries.areas.iter().copied().fold(0.0, f32::max);
-        assert!(farthest >= 16.0 * near_area, "{farthest} against {near_area}");
+        assert!(
+            farthest >= 16.0 * near_area,
+            "{farthest} against {near_area}"
+        );
 
         // Without a detail region every entry stands for the same area.
         let mut uniform = scene.clone();

@@ -2,7 +2,9 @@
 //! Light Maps Dynamic"), a lightmap made dynamic by precomputed light paths.
 //!
 //! Data flow. Bake: entry points are sampled on all surfaces in proportion
-//! to area (Halton, low discrepancy) and clustered by position and normal
+//! to area (Halton, low discrepancy; weighted by the lightmap's density
+//! where it coarsens outside the scene's detail region, each entry then
+//! standing for its own area) and clustered by position and normal
 //! (k-means++ seeding, Lloyd iterations); from each entry point quasi-random
 //! light paths (cosine directions, Russian roulette by albedo luminance,
 //! equations 1 to 3) leave virtual point lights, and every lightmap receiver
