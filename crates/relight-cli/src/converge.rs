@@ -377,7 +377,7 @@ impl Study<'_> {
         writeln!(out, "### {technique} on {}\n", scene_path.display())?;
         writeln!(
         out,
-        "{} receivers, {} seen by the camera, {} points in space (a grid over the bounds, six normals each); reference: {} paths per receiver and point, {} per pixel, seed {}.\n",
+        "{} receivers, {} seen by the camera, {} points in space (a grid over the scene's content bounds, six normals each); reference: {} paths per receiver and point, {} per pixel, seed {}.\n",
         visible.len(),
         visible.iter().filter(|&&seen| seen).count(),
         space_points,
