@@ -1019,15 +1019,9 @@ fn glossy_light_follows_the_frames_camera() {
 fn ground_and_room_scene() -> Scene {
     let folder =
         std::env::temp_dir().join(format!("relight-lightskin-ground-{}", std::process::id()));
-    std::fs::create_dir_all(&folder).unwrap();
-    let obj = relight_scene::generate::ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
-    std::fs::write(folder.join("mesh.obj"), obj).unwrap();
-    std::fs::write(
-        folder.join("scene.toml"),
-        "mesh = \"mesh.obj\"\n[[lights]]\nkind = \"directional\"\ndirection = [0.5, -0.6, 0.3]\nirradiance = [3, 3, 3]\n",
-    )
-    .unwrap();
-    let scene = relight_scene::load_scene(&folder.join("scene.toml")).unwrap();
+    let sun = "[[lights]]\nkind = \"directional\"\ndirection = [0.5, -0.6, 0.3]\nirradiance = [3, 3, 3]\n";
+    let path = relight_scene::generate::write_ground_and_room(&folder, sun).unwrap();
+    let scene = relight_scene::load_scene(&path).unwrap();
     let _ = std::fs::remove_dir_all(&folder);
     scene
 }

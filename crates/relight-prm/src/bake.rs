@@ -1116,11 +1116,8 @@ mod tests {
     fn ground_and_room() -> Scene {
         let folder =
             std::env::temp_dir().join(format!("relight-prm-ground-{}", std::process::id()));
-        std::fs::create_dir_all(&folder).unwrap();
-        let obj = relight_scene::generate::ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
-        std::fs::write(folder.join("mesh.obj"), obj).unwrap();
-        std::fs::write(folder.join("scene.toml"), "mesh = \"mesh.obj\"\n").unwrap();
-        let scene = relight_scene::load_scene(&folder.join("scene.toml")).unwrap();
+        let path = relight_scene::generate::write_ground_and_room(&folder, "").unwrap();
+        let scene = relight_scene::load_scene(&path).unwrap();
         let _ = std::fs::remove_dir_all(&folder);
         scene
     }

@@ -96,6 +96,17 @@ pub fn ground_and_room_obj(ground_side: f32, [width, height, depth]: [f32; 3]) -
     obj
 }
 
+/// Writes [`ground_and_room_obj`] (120 m of ground, a 6 x 3 x 8 m room) as
+/// `mesh.obj` and a `scene.toml` naming it, followed by `scene_tail`, into
+/// `folder` (created if needed); returns the path of `scene.toml`. Loaded,
+/// the ground is cut into rings of coarser lightmap texels, as a user's
+/// file would be.
+pub fn write_ground_and_room(folder: &Path, scene_tail: &str) -> Result<PathBuf, SceneError> {
+    let obj = ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
+    let toml = format!("mesh = \"mesh.obj\"\n{scene_tail}");
+    write_scene_files(folder, &[("mesh.obj", &obj), ("scene.toml", &toml)])
+}
+
 /// Writes `atrium.obj`, `atrium.mtl` and `scene.toml` into `folder`
 /// (created if needed) and returns the path of `scene.toml`.
 pub fn write_atrium(folder: &Path, target_triangles: usize) -> Result<PathBuf, SceneError> {
