@@ -28,8 +28,8 @@ pub struct Geometry<'a> {
     pub emitters: &'a Emitters,
     pub ray_epsilon: f32,
     pub dynamic: Option<&'a DynamicWorld>,
-    /// The scene's content bounds when its lightmap coarsens outside them
-    /// ([`Scene::content_bounds`]), else `None`.
+    /// The scene's detail region and margin when its lightmap coarsens
+    /// outside them ([`Scene::detail_bounds`]), else `None`.
     pub content: Option<(Vec3, Vec3)>,
 }
 

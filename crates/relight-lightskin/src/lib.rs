@@ -421,13 +421,11 @@ struct SparsePoints {
 }
 
 impl SparsePoints {
-    /// Spreads `count` points over `mesh` (in the mesh's own space) and
-    /// appends them as discs of the mesh's area per point; returns their
-    /// anchors and that area.
-    /// Spreads `count` points over `mesh` (by area times `weights`, see
-    /// [`points::spread_points`]); returns their anchors and the area
-    /// each stands for where the weight is 1. A point's disc covers that
-    /// area over its triangle's weight.
+    /// Spreads `count` points over `mesh` (in the mesh's own space, by
+    /// area times `weights`, see [`points::spread_points`]) and appends
+    /// them as discs; returns their anchors and the area each stands for
+    /// where the weight is 1. A point's disc covers that area over its
+    /// triangle's weight.
     fn add_mesh(
         &mut self,
         mesh: &Mesh,
@@ -436,11 +434,8 @@ impl SparsePoints {
         weights: Option<&[f32]>,
         glossy_exponent: impl Fn(usize) -> f32,
     ) -> (Vec<Anchor>, f32) {
-        let anchors = points::spread_points(mesh, count, seed, weights);
-        let area_per_point = match weights {
-            Some(weights) => relight_scene::AreaTable::weighted(mesh, weights).total() as f32,
-            None => mesh.total_area() as f32,
-        } / anchors.len().max(1) as f32;
+        let (anchors, spread_area) = points::spread_points(mesh, count, seed, weights);
+        let area_per_point = spread_area as f32 / anchors.len().max(1) as f32;
         for anchor in &anchors {
             let triangle = anchor.triangle as usize;
             self.positions.push(points::anchor_position(mesh, *anchor));
@@ -493,8 +488,8 @@ pub struct LightSkin {
     /// `visibility` off), and how many static points there are.
     visibility: PointVisibility,
     static_points: usize,
-    /// [`Scene::content_bounds`] when the scene has a detail region: what
-    /// directional lights' maps cover.
+    /// [`Scene::detail_bounds`]: what directional lights' maps cover
+    /// when the lightmap coarsens outside them.
     content_bounds: Option<(Vec3, Vec3)>,
     point_diffuse: Vpls,
     point_glossy: Vpls,
@@ -647,7 +642,7 @@ impl LightSkin {
             occluders: occlusion::Occluders::default(),
             visibility,
             static_points,
-            content_bounds: scene.detail_region().map(|_| scene.content_bounds()),
+            content_bounds: scene.detail_bounds(),
             point_diffuse: Vpls::zeroed(point_count),
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,

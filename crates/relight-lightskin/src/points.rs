@@ -40,14 +40,19 @@ const CANDIDATES_PER_POINT: usize = 8;
 /// With `weights` (one per triangle, [`relight_scene::Scene::detail_weights`])
 /// a triangle's share of the points follows its area times its weight, so
 /// points thin out with the lightmap where it coarsens.
-pub fn spread_points(mesh: &Mesh, count: usize, seed: u64, weights: Option<&[f32]>) -> Vec<Anchor> {
-    let areas = match weights {
-        Some(weights) => AreaTable::weighted(mesh, weights),
-        None => AreaTable::new(mesh),
-    };
+///
+/// Returns the anchors and the area they were spread over (weighted by
+/// `weights`).
+pub fn spread_points(
+    mesh: &Mesh,
+    count: usize,
+    seed: u64,
+    weights: Option<&[f32]>,
+) -> (Vec<Anchor>, f64) {
+    let areas = AreaTable::weighted(mesh, weights);
     let total_area = areas.total();
     if count == 0 || total_area <= 0.0 {
-        return Vec::new();
+        return (Vec::new(), total_area);
     }
     let rotation = [
         radical_inverse(7, seed),
@@ -126,7 +131,8 @@ pub fn spread_points(mesh: &Mesh, count: usize, seed: u64, weights: Option<&[f32
         }
         spacing *= 0.85;
     }
-    accepted.into_iter().map(|(anchor, _, _)| anchor).collect()
+    let anchors = accepted.into_iter().map(|(anchor, _, _)| anchor).collect();
+    (anchors, total_area)
 }
 
 /// Uniform hash grid over points for nearest-neighbour queries.

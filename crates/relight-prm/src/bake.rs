@@ -800,10 +800,7 @@ pub(crate) struct Entries {
 pub(crate) fn sample_entries(scene: &Scene, count: usize) -> Result<Entries, TechniqueError> {
     let mesh = &scene.mesh;
     let weights = scene.detail_weights();
-    let areas = match &weights {
-        Some(weights) => relight_scene::AreaTable::weighted(mesh, weights),
-        None => relight_scene::AreaTable::new(mesh),
-    };
+    let areas = relight_scene::AreaTable::weighted(mesh, weights.as_deref());
     let running = areas.total();
     if running <= 0.0 {
         return Err(TechniqueError::Other(
@@ -1141,7 +1138,8 @@ mod tests {
             .position(|p| region.gap(*p, *p) == 0.0)
             .unwrap()];
         let weights = scene.detail_weights().unwrap();
-        let weighted_total = relight_scene::AreaTable::weighted(&scene.mesh, &weights).total();
+        let weighted_total =
+            relight_scene::AreaTable::weighted(&scene.mesh, Some(&weights)).total();
         assert!((near_area - weighted_total as f32 / 4096.0).abs() < 1e-3 * near_area);
         let farthest = entries.areas.iter().copied().fold(0.0, f32::max);
         assert!(

@@ -675,6 +675,8 @@ fn fit_resolution(
         (packed.0.max(packed.1) <= resolution, packed)
     };
     // Area in detail-region texels: a chart of ring k covers 4^k times less.
+    // At full density everywhere it is the mesh's own sum, in its order, so
+    // those atlases come out bit for bit as before rings existed.
     let uniform = charts.iter().all(|chart| chart.texel_scale == 1.0);
     let effective_area = if uniform {
         scene.mesh.total_area()

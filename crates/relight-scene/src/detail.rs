@@ -172,19 +172,22 @@ impl Scene {
         )
     }
 
-    /// Where the scene's content is: the detail region and its
-    /// full-density margin when the lightmap coarsens outside it, else the
+    /// The detail region and its full-density margin, clipped to the
+    /// mesh's bounds, when the lightmap coarsens outside them; else `None`.
+    pub fn detail_bounds(&self) -> Option<(Vec3, Vec3)> {
+        let region = self.detail_region()?;
+        let (low, high) = self.mesh.bounds();
+        Some((
+            (region.low - Vec3::splat(region.margin)).max(low),
+            (region.high + Vec3::splat(region.margin)).min(high),
+        ))
+    }
+
+    /// Where the scene's content is: [`Self::detail_bounds`], else the
     /// mesh's bounds. An irradiance volume covers this, not a ground plane
     /// 200 m across (the classroom's volume was 16 x 1 x 16 voxels of 14 m).
     pub fn content_bounds(&self) -> (Vec3, Vec3) {
-        let (low, high) = self.mesh.bounds();
-        match self.detail_region() {
-            Some(region) => (
-                (region.low - Vec3::splat(region.margin)).max(low),
-                (region.high + Vec3::splat(region.margin)).min(high),
-            ),
-            None => (low, high),
-        }
+        self.detail_bounds().unwrap_or_else(|| self.mesh.bounds())
     }
 }
 

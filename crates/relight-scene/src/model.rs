@@ -83,7 +83,11 @@ impl AreaTable {
 
     /// Running sums of each triangle's area times its weight: with
     /// [`Scene::detail_weights`], picks follow the lightmap's density.
-    pub fn weighted(mesh: &Mesh, weights: &[f32]) -> Self {
+    /// Without weights, [`Self::new`].
+    pub fn weighted(mesh: &Mesh, weights: Option<&[f32]>) -> Self {
+        let Some(weights) = weights else {
+            return Self::new(mesh);
+        };
         let mut running = 0.0f64;
         let cumulative = (0..mesh.triangles.len())
             .map(|triangle| {
@@ -276,7 +280,9 @@ pub struct Scene {
     /// so its lightmap atlas, for each of its meshes.
     pub gltf_primitives: Vec<GltfPrimitive>,
     /// Where the lightmap spends its texels (`[lightmap]` of the scene
-    /// file; see [`crate::detail`]).
+    /// file; see [`crate::detail`]). The loader resolves it to a box or to
+    /// uniform; a scene built in code may keep `Automatic`, which each use
+    /// finds from the mesh.
     pub lightmap_layout: crate::detail::LightmapLayout,
 }
 

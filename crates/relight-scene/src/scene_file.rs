@@ -655,9 +655,11 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
 /// one scene triangle, so an engine adopting the file cannot give it
 /// relight's lightmap: the warning says so and how to keep it whole.
 ///
-/// Returns the layout with the region fixed as a box: the cut mesh has no
-/// huge triangles left, so the automatic region found again from it would
-/// be the whole ground.
+/// Returns the layout resolved once for the loaded scene: the region fixed
+/// as a box (the cut mesh has no huge triangles left, so the automatic
+/// region found again from it would be the whole ground), or uniform where
+/// nothing reaches past a region's margin, so that no later use searches
+/// the mesh again.
 fn cut_for_lightmap_detail(
     mesh: &mut Mesh,
     materials: &[Material],
@@ -667,7 +669,10 @@ fn cut_for_lightmap_detail(
     warnings: &mut Vec<String>,
 ) -> LightmapLayout {
     let Some(region) = DetailRegion::of(mesh, layout) else {
-        return layout;
+        return LightmapLayout {
+            detail: LightmapDetail::Uniform,
+            ..layout
+        };
     };
     let fixed = LightmapLayout {
         detail: LightmapDetail::Bounds {
