@@ -9,6 +9,7 @@
 //! equation 12) are built once, when a mesh is loaded.
 
 use glam::{Vec2, Vec3};
+use rayon::prelude::*;
 use relight_core::sampling::{radical_inverse, uniform_triangle};
 use relight_core::Rgb;
 use relight_scene::{AreaTable, Mesh};
@@ -41,13 +42,20 @@ const CANDIDATES_PER_POINT: usize = 8;
 /// a triangle's share of the points follows its area times its weight, so
 /// points thin out with the lightmap where it coarsens.
 ///
+/// With `hidden` (a test of a candidate's triangle and position), candidates
+/// on surfaces nobody sees are dropped before any is accepted, so the
+/// points go to the visible surfaces: see
+/// `relight_technique::SceneContext::is_hidden_surface_point`.
+///
 /// Returns the anchors and the area they were spread over (weighted by
-/// `weights`).
+/// `weights`; without the hidden share when `hidden` is given, estimated
+/// from the share of candidates it dropped).
 pub fn spread_points(
     mesh: &Mesh,
     count: usize,
     seed: u64,
     weights: Option<&[f32]>,
+    hidden: Option<&(dyn Fn(u32, Vec3) -> bool + Sync)>,
 ) -> (Vec<Anchor>, f64) {
     let areas = AreaTable::weighted(mesh, weights);
     let total_area = areas.total();
@@ -80,6 +88,21 @@ pub fn spread_points(
             (anchor, anchor_position(mesh, anchor), scale)
         })
         .collect();
+    let (candidates, total_area) = match hidden {
+        Some(hidden) => {
+            let drawn = candidates.len();
+            let visible: Vec<(Anchor, Vec3, f32)> = candidates
+                .into_par_iter()
+                .filter(|(anchor, position, _)| !hidden(anchor.triangle, *position))
+                .collect();
+            let share = visible.len() as f64 / drawn as f64;
+            (visible, total_area * share)
+        }
+        None => (candidates, total_area),
+    };
+    if candidates.is_empty() {
+        return (Vec::new(), total_area);
+    }
     // Hexagonal packing of `count` discs of diameter d covers
     // count * sqrt(3)/2 * d^2; dart throwing stalls well below that.
     let hexagonal = (2.0 * total_area / (3f64.sqrt() * count as f64)).sqrt() as f32;

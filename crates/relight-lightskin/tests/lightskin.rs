@@ -1060,3 +1060,138 @@ fn points_and_sun_vals_stay_where_the_detail_is() {
         vals.count
     );
 }
+
+/// The point light of the doubled-ceiling tests: off centre, so the
+/// ceiling's light varies across it.
+const SECOND_CEILING_LIGHT: &str =
+    "[[lights]]\nkind = \"point\"\nposition = [0.8, 1.0, -0.5]\nintensity = [4, 4, 4]\n";
+
+/// Mean irradiance of the visible ceiling's receivers in 0.5 m cells.
+fn visible_ceiling_cells(
+    context: &SceneContext,
+    technique: &dyn Technique,
+) -> std::collections::BTreeMap<[i32; 3], f64> {
+    let [_, height, _] = relight_scene::generate::TEST_ROOM;
+    let receivers = &context.atlas.receivers;
+    let irradiance = technique.receiver_irradiance().expect("receiver values");
+    let ceiling = (0..receivers.len()).filter(|&index| {
+        receivers.normals[index].y < -0.9 && (receivers.positions[index].y - height).abs() < 0.005
+    });
+    relight_render::metrics::cell_means(
+        ceiling.map(|index| (receivers.positions[index], irradiance[index])),
+        0.5,
+    )
+}
+
+/// A second ceiling 2.5 cm above the room's own, facing down like it (as
+/// real models lay panels under a slab): no sparse point stands on it, and
+/// the visible ceiling gets the light it gets without the hidden layer.
+/// Points on the hidden layer gather nothing and, blended into the visible
+/// ceiling, made dark blotches (the classroom's ceiling).
+#[test]
+fn a_hidden_second_ceiling_takes_no_points_and_leaves_no_blotch() {
+    let gap = 0.025;
+    let [_, height, _] = relight_scene::generate::TEST_ROOM;
+    let run = |second_ceiling: Option<f32>| {
+        let scene = relight_scene::generate::load_obj_scene(
+            &relight_scene::generate::room_with_second_ceiling_obj(second_ceiling),
+            SECOND_CEILING_LIGHT,
+        )
+        .expect("loads");
+        let context = context_of(scene, TexelDensity::MetresPerTexel(0.05));
+        let technique = updated(&context, LightSkinParams::default());
+        let on_hidden_layer = technique
+            .sparse_points()
+            .iter()
+            .filter(|point| point.y > height + 0.5 * gap)
+            .count();
+        (on_hidden_layer, visible_ceiling_cells(&context, &technique))
+    };
+    let (on_hidden_layer, doubled) = run(Some(gap));
+    let (_, single) = run(None);
+    let worst = relight_render::metrics::cell_ratio_range(&doubled, &single);
+    println!("visible ceiling's 0.5 m cells, doubled over single: {worst:?}");
+    assert_eq!(on_hidden_layer, 0, "sparse points on the hidden layer");
+    // Both runs spread their own 4096 points, so cells differ by the
+    // interpolation's noise alone: measured 0.995-1.003x; with points on
+    // the hidden layer 0.23-0.79x.
+    assert!(worst.0 > 0.85 && worst.1 < 1.15, "{worst:?}");
+}
+
+/// A closed room whose floor runs on under its +x wall into a low sun:
+/// nothing lights the room. Floor texels 0.3 m wide straddle the wall,
+/// their receivers inside and part of their area in the sun outside; the
+/// VALs there took the inside receiver's anchor, and the room gathered
+/// them through the wall (the generated halls: 3.3x the path tracer's
+/// light).
+#[test]
+fn vals_outside_a_wall_do_not_light_the_room_through_a_shared_texel() {
+    let [width, height, _] = relight_scene::generate::TEST_ROOM;
+    let sun = "[[lights]]\nkind = \"directional\"\ndirection = [-0.8, -0.5, 0.1]\nirradiance = [3, 3, 3]\n";
+    let scene = relight_scene::generate::load_obj_scene(
+        &relight_scene::generate::room_on_a_longer_floor_obj(3.0),
+        sun,
+    )
+    .expect("loads");
+    let context = context_of(scene, TexelDensity::MetresPerTexel(0.3));
+    let technique = updated(&context, LightSkinParams::default());
+    let irradiance = technique.receiver_irradiance().expect("receiver values");
+    let receivers = &context.atlas.receivers;
+    let (mut inside, mut outside) = (0.0f32, 0.0f32);
+    for (index, position) in receivers.positions.iter().enumerate() {
+        let light = relight_core::luminance(irradiance[index]);
+        if position.x < 0.5 * width - 0.01 && position.y < height {
+            inside = inside.max(light);
+        } else if position.y < 0.01 {
+            outside = outside.max(light);
+        }
+    }
+    println!("brightest receiver inside {inside}, on the floor outside {outside}");
+    assert!(outside > 0.05, "the sunlit floor outside reflects light");
+    // The path tracer gives the room nothing. Measured: 0.35 % of the
+    // floor outside, 26 % when VALs keep the anchor of their texel's
+    // receiver.
+    assert!(inside < 0.01 * outside, "{inside} inside against {outside}");
+}
+
+/// A generated hall lit by a low sun through small windows, whose wall
+/// planes run past each other at the corners out into the sun (variant 8
+/// of the default family): the light in view within 0.85-1.15x of the path
+/// tracer's one bounce. Its sunlit floor and wall ends outside shared
+/// texels with the floor and walls inside, and gave 3.3x before VALs had
+/// to see their anchors.
+#[test]
+fn a_hall_whose_walls_run_out_into_the_sun_gets_the_light_of_one_bounce() {
+    use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
+    let hall = variant(VARIANTS_DEFAULT_SEED, 8);
+    assert_eq!(hall.kind, VariantKind::Hall, "{}", hall.name());
+    let folder =
+        std::env::temp_dir().join(format!("relight-lightskin-hall-{}", std::process::id()));
+    let case =
+        relight_render::robustness::VariantCase::load(hall, &folder, 4, ContextSettings::default())
+            .expect("the variant loads");
+    let _ = std::fs::remove_dir_all(&folder);
+    let context = case.context;
+    let lights = context.scene.lights.clone();
+    let technique = updated(&context, LightSkinParams::default());
+    let settings = PathSettings {
+        max_bounces: 1,
+        ..PathSettings::default()
+    };
+    let reference =
+        relight_render::render::render_reference(&context, &lights, settings, 64, &NoProgress);
+    let image = relight_render::render::render_with_technique(
+        &context,
+        &lights,
+        &technique,
+        4,
+        1,
+        &NoProgress,
+    );
+    let ratio =
+        relight_render::metrics::light_ratio(&image.indirect.pixels, &reference.indirect.pixels);
+    println!("light in view {ratio:.3}x of one bounce");
+    // The bound of an unlit room's light in the issue; the study measured
+    // 0.994x at 256 paths a pixel (64 here: a few percent of noise).
+    assert!((0.85..=1.15).contains(&ratio), "{ratio}");
+}

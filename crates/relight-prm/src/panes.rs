@@ -18,6 +18,15 @@
 //! before the set of taps changes (no seams). A receiver with no such
 //! point (behind a moulding, on a thin step) becomes a pane point itself,
 //! so every receiver keeps light of its own side of every wall.
+//!
+//! Pane points stand only where someone sees
+//! ([`SceneContext::is_hidden_surface_point`], lifted as far as the
+//! visibility rays): a second ceiling a few centimetres above the visible
+//! one shares its bins, and a pane point there gathers nothing while its
+//! lifted end, past the gap, passes as visible from the room below (the
+//! classroom's ceiling, speckled black). A hidden receiver reads the
+//! visible points it sees, or none and stays dark, as the path tracer has
+//! it.
 
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
@@ -44,6 +53,12 @@ const REACH_TEXELS: f32 = 2.0;
 /// column (sagitta 2 cm for a 0.3 m column over 40 degrees) or over a
 /// tessellated floor is not taken for a wall.
 const LIFT_TEXELS: f32 = 0.1;
+
+/// How far visibility rays between receivers and pane points start off
+/// the surface.
+pub fn visibility_lift(context: &SceneContext, spacing: f32) -> f32 {
+    (spacing * LIFT_TEXELS).max(relight_trace::direct::ray_epsilon_for(&context.bvh))
+}
 
 /// Rounds in which receivers without a visible pane point add points.
 const COVERAGE_ROUNDS: usize = 3;
@@ -94,8 +109,27 @@ impl PanePoints {
         if spacing.is_nan() || spacing <= context.atlas.metres_per_texel || receivers.is_empty() {
             return Self::every_receiver();
         }
-        let mut uncovered: Vec<u32> = (0..receivers.len() as u32).collect();
-        let mut points = bin_representatives(receivers, &uncovered, spacing);
+        // A bin's representative is a receiver someone sees: a second
+        // ceiling just above the visible one shares its bins, and half of
+        // them would otherwise stand on the hidden layer.
+        let lift = visibility_lift(context, spacing);
+        let seen: Vec<u32> = (0..receivers.len() as u32)
+            .into_par_iter()
+            .filter(|&receiver| {
+                let index = receiver as usize;
+                !context.is_hidden_surface_point(
+                    receivers.positions[index],
+                    receivers.normals[index],
+                    lift,
+                )
+            })
+            .collect();
+        // Hidden receivers need no pane point of their own: they read the
+        // visible points they see, and one enclosed by geometry reads
+        // none, dark as the path tracer has it (each would otherwise
+        // become a pane point: 2.5x the classroom's panes).
+        let mut points = bin_representatives(receivers, &seen, spacing);
+        let mut uncovered = seen;
         for round in 0..=COVERAGE_ROUNDS {
             // Points only ever add candidates, so a covered receiver stays
             // covered: each round tests the ones the last left uncovered.
@@ -200,8 +234,22 @@ impl Upsampling {
         let receivers = &context.atlas.receivers;
         let reach = spacing * REACH_TEXELS;
         let grid = PointGrid::new(points, &receivers.positions, reach);
-        let lift =
-            (spacing * LIFT_TEXELS).max(relight_trace::direct::ray_epsilon_for(&context.bvh));
+        let lift = visibility_lift(context, spacing);
+        // A hidden pane point (one left without a visible point of its own)
+        // lights only itself: its lift can cross the thin gap to the
+        // visible layer, so the visibility ray below would let it through.
+        let hidden: Vec<bool> = grid
+            .points
+            .par_iter()
+            .map(|&point| {
+                let index = point as usize;
+                context.is_hidden_surface_point(
+                    receivers.positions[index],
+                    receivers.normals[index],
+                    lift,
+                )
+            })
+            .collect();
         let (points, weights) = targets
             .par_iter()
             .map_init(Vec::new, |candidates, &receiver| {
@@ -224,15 +272,16 @@ impl Upsampling {
                 let mut found = 0;
                 for &(distance, slot) in candidates.iter().take(CANDIDATES) {
                     let point = grid.points[slot as usize] as usize;
-                    let visible = point == receiver || {
-                        let from = position + normal * lift;
-                        let to = receivers.positions[point] + receivers.normals[point] * lift;
-                        !context.bvh.occluded(&Ray {
-                            origin: from,
-                            direction: to - from,
-                            t_max: 1.0 - 1e-4,
-                        })
-                    };
+                    let visible = point == receiver
+                        || !hidden[slot as usize] && {
+                            let from = position + normal * lift;
+                            let to = receivers.positions[point] + receivers.normals[point] * lift;
+                            !context.bvh.occluded(&Ray {
+                                origin: from,
+                                direction: to - from,
+                                t_max: 1.0 - 1e-4,
+                            })
+                        };
                     if visible {
                         taps[found] = (slot, distance);
                         found += 1;

@@ -7,7 +7,9 @@
 //! rather than per pixel keeps dark pixels from dominating.
 
 use crate::image::{false_colour, Image};
+use glam::Vec3;
 use relight_core::{luminance, Rgb};
+use std::collections::BTreeMap;
 
 /// Both error norms of `values` against `reference`.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -78,6 +80,41 @@ pub fn tile_means(image: &Image, tile: u32) -> Vec<Rgb> {
         }
     }
     means
+}
+
+/// Mean luminance of the (position, value) `samples` in each cube `cell`
+/// metres wide, keyed by the cell's integer coordinates: the lightmap's
+/// counterpart of [`tile_means`], which compares runs whose atlases differ
+/// (a blotch is a cell far from its counterpart).
+pub fn cell_means(
+    samples: impl IntoIterator<Item = (Vec3, Rgb)>,
+    cell: f32,
+) -> BTreeMap<[i32; 3], f64> {
+    let mut sums: BTreeMap<[i32; 3], (f64, usize)> = BTreeMap::new();
+    for (position, value) in samples {
+        let key = (position / cell).floor().as_ivec3().to_array();
+        let entry = sums.entry(key).or_default();
+        entry.0 += luminance(value) as f64;
+        entry.1 += 1;
+    }
+    sums.into_iter()
+        .map(|(key, (sum, count))| (key, sum / count as f64))
+        .collect()
+}
+
+/// The lowest and highest ratio of a cell of `values` to the same cell of
+/// `reference` ([`cell_means`]), over the cells both have: (inf, 0) when
+/// they share none.
+pub fn cell_ratio_range(
+    values: &BTreeMap<[i32; 3], f64>,
+    reference: &BTreeMap<[i32; 3], f64>,
+) -> (f64, f64) {
+    values
+        .iter()
+        .filter_map(|(cell, value)| Some(value / reference.get(cell)?))
+        .fold((f64::INFINITY, 0.0), |(low, high), ratio| {
+            (low.min(ratio), high.max(ratio))
+        })
 }
 
 /// Total luminance of `values` over that of `reference`: 1 when a

@@ -107,6 +107,122 @@ pub fn write_ground_and_room(folder: &Path, scene_tail: &str) -> Result<PathBuf,
     write_scene_files(folder, &[("mesh.obj", &obj), ("scene.toml", &toml)])
 }
 
+/// OBJ text of quads, each wound to face the way it is asked to.
+#[derive(Default)]
+struct QuadObj {
+    text: String,
+    vertices: usize,
+}
+
+impl QuadObj {
+    fn quad(&mut self, corners: [Vec3; 4], facing: Vec3) {
+        let winding = (corners[1] - corners[0]).cross(corners[2] - corners[0]);
+        let order: [usize; 4] = if winding.dot(facing) > 0.0 {
+            [0, 1, 2, 3]
+        } else {
+            [0, 3, 2, 1]
+        };
+        for corner in corners {
+            let _ = writeln!(self.text, "v {} {} {}", corner.x, corner.y, corner.z);
+        }
+        let index = |slot: usize| self.vertices + order[slot] + 1;
+        let face = format!("f {} {} {} {}", index(0), index(1), index(2), index(3));
+        let _ = writeln!(self.text, "{face}");
+        self.vertices += 4;
+    }
+
+    /// A horizontal quad over x in `xs`, z in `zs` at height `y`.
+    fn level(&mut self, xs: [f32; 2], y: f32, zs: [f32; 2], facing: Vec3) {
+        self.quad(
+            [
+                Vec3::new(xs[0], y, zs[0]),
+                Vec3::new(xs[0], y, zs[1]),
+                Vec3::new(xs[1], y, zs[1]),
+                Vec3::new(xs[1], y, zs[0]),
+            ],
+            facing,
+        );
+    }
+
+    /// The four walls and the ceiling of a room, `[width, height, depth]`
+    /// with its floor at y = 0 and centred on x and z, facing in.
+    fn walls_and_ceiling(&mut self, [width, height, depth]: [f32; 3]) {
+        let (x, z) = (width / 2.0, depth / 2.0);
+        self.level([-x, x], height, [-z, z], -Vec3::Y);
+        let corners = [(-x, -z), (x, -z), (x, z), (-x, z)];
+        for side in 0..4 {
+            let ((x0, z0), (x1, z1)) = (corners[side], corners[(side + 1) % 4]);
+            let inward = -Vec3::new(x0 + x1, 0.0, z0 + z1).normalize();
+            self.quad(
+                [
+                    Vec3::new(x0, 0.0, z0),
+                    Vec3::new(x1, 0.0, z1),
+                    Vec3::new(x1, height, z1),
+                    Vec3::new(x0, height, z0),
+                ],
+                inward,
+            );
+        }
+    }
+}
+
+/// The room of the generated test rooms below: [width, height, depth].
+pub const TEST_ROOM: [f32; 3] = [4.0, 2.5, 4.0];
+
+/// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
+/// facing in, its floor at y = 0 and centred on x and z; with
+/// `second_ceiling` = Some(gap), a second ceiling `gap` metres above the
+/// room's own and facing down like it.
+///
+/// Real models lay such hidden layers behind visible surfaces (the
+/// classroom's ceiling panels 2.9 cm under its ceiling), and nobody sees
+/// the upper one: it faces the back of the lower.
+pub fn room_with_second_ceiling_obj(second_ceiling: Option<f32>) -> String {
+    let [width, height, depth] = TEST_ROOM;
+    let (x, z) = (width / 2.0, depth / 2.0);
+    let mut obj = QuadObj::default();
+    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
+    obj.walls_and_ceiling(TEST_ROOM);
+    if let Some(gap) = second_ceiling {
+        obj.level([-x, x], height + gap, [-z, z], -Vec3::Y);
+    }
+    obj.text
+}
+
+/// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
+/// facing in whose floor runs on `beyond` metres past its +x wall, under
+/// it, into the open: as modelling tools leave a floor drawn before the
+/// walls. A lightmap texel on the floor can straddle that wall.
+pub fn room_on_a_longer_floor_obj(beyond: f32) -> String {
+    let [width, _, depth] = TEST_ROOM;
+    let (x, z) = (width / 2.0, depth / 2.0);
+    let mut obj = QuadObj::default();
+    obj.level([-x, x + beyond], 0.0, [-z, z], Vec3::Y);
+    obj.walls_and_ceiling(TEST_ROOM);
+    obj.text
+}
+
+/// Writes `obj` as `mesh.obj` and a `scene.toml` naming it, followed by
+/// `scene_tail`, into a temporary folder of its own, loads the scene and
+/// removes the folder again (tests of several crates load such scenes,
+/// and may run at once).
+pub fn load_obj_scene(obj: &str, scene_tail: &str) -> Result<crate::Scene, SceneError> {
+    static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let folder = std::env::temp_dir().join(format!(
+        "relight-generated-{}-{}",
+        std::process::id(),
+        NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    ));
+    let toml = format!("mesh = \"mesh.obj\"\n{scene_tail}");
+    let scene = write_scene_files(
+        &folder,
+        &[("mesh.obj", &obj.to_string()), ("scene.toml", &toml)],
+    )
+    .and_then(|path| crate::load_scene(&path));
+    let _ = std::fs::remove_dir_all(&folder);
+    scene
+}
+
 /// Writes `atrium.obj`, `atrium.mtl` and `scene.toml` into `folder`
 /// (created if needed) and returns the path of `scene.toml`.
 pub fn write_atrium(folder: &Path, target_triangles: usize) -> Result<PathBuf, SceneError> {

@@ -115,6 +115,36 @@ impl SceneContext {
         }
         back_hits * 4 > hits
     }
+
+    /// How far [`SceneContext::is_hidden_surface_point`] lifts a surface
+    /// point before testing it: clear of the surface's own triangles at
+    /// any distance from the origin.
+    pub fn surface_lift(&self) -> f32 {
+        4.0 * relight_trace::direct::ray_epsilon_for(&self.bvh)
+    }
+
+    /// True when the surface point at `position`, facing `normal`, is one
+    /// nobody sees: another surface lies in front of it closer than
+    /// `lift`, or the point lifted off its surface is inside geometry
+    /// ([`SceneContext::is_inside_geometry`]).
+    ///
+    /// A model that lays a second ceiling or wall just behind the visible
+    /// one (the classroom's two ceilings 2.9 cm apart) puts half of any
+    /// evenly spread sample set on the hidden layer, where it gathers
+    /// nothing; interpolated into the visible layer, those samples are
+    /// dark blotches. A lift longer than such a gap carries the test
+    /// point through the visible layer into the room, so the path the
+    /// lift takes is checked as well.
+    pub fn is_hidden_surface_point(&self, position: Vec3, normal: Vec3, lift: f32) -> bool {
+        let epsilon = relight_trace::direct::ray_epsilon_for(&self.bvh);
+        let covered = lift > epsilon
+            && self.bvh.occluded(&Ray {
+                origin: position + normal * epsilon,
+                direction: normal,
+                t_max: lift - epsilon,
+            });
+        covered || self.is_inside_geometry(position + normal * lift)
+    }
 }
 
 /// Builds a lightmap atlas whose receivers stand where their texel can be
@@ -286,5 +316,38 @@ mod tests {
             moved > 100 && before >= after + 80,
             "{before} -> {after}, moved {moved}"
         );
+    }
+
+    /// The hidden layer of a doubled ceiling is hidden whether the lift
+    /// stays in the gap or crosses it into the room, and no surface of the
+    /// room is.
+    #[test]
+    fn a_second_ceiling_just_above_the_visible_one_is_hidden() {
+        let gap = 0.025;
+        let obj = relight_scene::generate::room_with_second_ceiling_obj(Some(gap));
+        let scene = relight_scene::generate::load_obj_scene(&obj, "").expect("loads");
+        let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
+        let [_, height, _] = relight_scene::generate::TEST_ROOM;
+        let down = -Vec3::Y;
+        for lift in [context.surface_lift(), 0.01, 0.04, 0.1] {
+            for (x, z) in [(0.0, 0.0), (1.3, -0.7), (-1.9, 1.9)] {
+                let upper = Vec3::new(x, height + gap, z);
+                assert!(
+                    context.is_hidden_surface_point(upper, down, lift),
+                    "upper layer at ({x}, {z}), lift {lift}"
+                );
+                let visible = [
+                    (Vec3::new(x, height, z), down),
+                    (Vec3::new(x, 0.0, z), Vec3::Y),
+                    (Vec3::new(2.0, 1.2, z.clamp(-1.9, 1.9)), -Vec3::X),
+                ];
+                for (position, normal) in visible {
+                    assert!(
+                        !context.is_hidden_surface_point(position, normal, lift),
+                        "{position} facing {normal}, lift {lift}"
+                    );
+                }
+            }
+        }
     }
 }
