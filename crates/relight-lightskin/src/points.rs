@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use relight_core::sampling::{radical_inverse, uniform_triangle};
 use relight_core::Rgb;
 use relight_scene::{AreaTable, Mesh};
+use std::borrow::Cow;
 use std::collections::HashMap;
 
 /// Neighbours per interpolated target (the paper's eight).
@@ -158,17 +159,30 @@ pub fn spread_points(
     (anchors, total_area)
 }
 
-/// Uniform hash grid over points for nearest-neighbour queries.
+/// Uniform hash grid over points for nearest-neighbour queries; it
+/// borrows the points ([`PointGrid::new`]) or owns them
+/// ([`PointGrid::owned`], to be kept across frames).
+#[derive(Clone, Debug)]
 pub struct PointGrid<'a> {
-    positions: &'a [Vec3],
+    positions: Cow<'a, [Vec3]>,
     cell: f32,
     cells: HashMap<[i32; 3], Vec<u32>>,
     low: Vec3,
     high: Vec3,
 }
 
+impl PointGrid<'static> {
+    pub fn owned(positions: Vec<Vec3>, cell: f32) -> Self {
+        PointGrid::over(Cow::Owned(positions), cell)
+    }
+}
+
 impl<'a> PointGrid<'a> {
     pub fn new(positions: &'a [Vec3], cell: f32) -> Self {
+        Self::over(Cow::Borrowed(positions), cell)
+    }
+
+    fn over(positions: Cow<'a, [Vec3]>, cell: f32) -> Self {
         let cell = cell.max(1e-6);
         let mut cells: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
         let mut low = Vec3::splat(f32::INFINITY);
@@ -188,6 +202,11 @@ impl<'a> PointGrid<'a> {
             low,
             high,
         }
+    }
+
+    /// The points, in the order they were given.
+    pub fn positions(&self) -> &[Vec3] {
+        &self.positions
     }
 
     /// The `NEIGHBOURS` nearest points whose normal faces the same side as

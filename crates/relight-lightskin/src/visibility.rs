@@ -71,9 +71,11 @@ pub struct PointVisibility {
     receiver_anchors: Vec<[u32; 2]>,
     /// The atlas's receiver of each texel, gutters included.
     receiver_of_texel: Vec<u32>,
-    /// The static points and their normals: a VAL's anchor is checked
-    /// against them each frame, both ends lifted `anchor_lift`.
-    positions: Vec<Vec3>,
+    /// The static points in a grid of `reach` cells, and their normals,
+    /// kept from [`Self::anchor_receivers`]: each frame a VAL's anchor is
+    /// checked against them (both ends lifted `anchor_lift`), and a VAL
+    /// that does not see its anchor looks for another.
+    grid: Option<PointGrid<'static>>,
     normals: Vec<Vec3>,
     anchor_lift: f32,
     /// How far from a receiver its anchors may stand.
@@ -133,8 +135,8 @@ impl PointVisibility {
             bits,
             receiver_anchors: Vec::new(),
             receiver_of_texel: Vec::new(),
-            positions: positions.to_vec(),
-            normals: normals.to_vec(),
+            grid: None,
+            normals: Vec::new(),
             anchor_lift: epsilon,
             reach: 0.0,
         }
@@ -187,7 +189,8 @@ impl PointVisibility {
         self.bits.len() * 4
             + self.receiver_anchors.len() * 8
             + self.receiver_of_texel.len() * 4
-            + (self.positions.len() + self.normals.len()) * 12
+            + (self.grid.as_ref().map_or(0, |grid| grid.positions().len()) + self.normals.len())
+                * 12
     }
 
     /// Finds each receiver's anchors, front and back: the nearest static
@@ -217,7 +220,7 @@ impl PointVisibility {
         let lift = self.anchor_lift;
         let unanchored = self.unanchored();
         let hidden = self.hidden();
-        let grid = PointGrid::new(positions, reach);
+        let grid = PointGrid::owned(positions.to_vec(), reach);
         let receivers = &atlas.receivers;
         self.receiver_anchors = (0..receivers.len())
             .into_par_iter()
@@ -260,6 +263,8 @@ impl PointVisibility {
             })
             .collect();
         self.receiver_of_texel = atlas.dilated_receiver_of_texel();
+        self.grid = Some(grid);
+        self.normals = normals.to_vec();
     }
 
     /// Gives every VAL of `vals` its anchor: the anchor of the receiver
@@ -315,16 +320,25 @@ impl PointVisibility {
         vals.group_by_anchor(anchors);
     }
 
+    /// The static points' grid; VALs have anchors only once
+    /// [`Self::anchor_receivers`] has built it.
+    fn anchor_grid(&self) -> &PointGrid<'static> {
+        self.grid
+            .as_ref()
+            .expect("VAL anchors come from anchor_receivers, which builds the grid")
+    }
+
     /// Whether VAL `index` of `vals` sees static point `point`.
     fn sees(&self, bvh: &Bvh, vals: &Vals, index: usize, point: u32) -> bool {
         let normal = Vec3::new(vals.nx[index], vals.ny[index], vals.nz[index]);
         let position = Vec3::new(vals.px[index], vals.py[index], vals.pz[index]);
         let point = point as usize;
+        let grid = self.anchor_grid();
         sees_lifted(
             bvh,
             self.anchor_lift,
             (position, normal),
-            (self.positions[point], self.normals[point]),
+            (grid.positions()[point], self.normals[point]),
         )
     }
 
@@ -333,7 +347,7 @@ impl PointVisibility {
     /// none.
     fn reanchor_blocked(&self, vals: &Vals, anchors: &mut [u32], bvh: &Bvh) {
         let hidden = self.hidden();
-        let grid = PointGrid::new(&self.positions, self.reach);
+        let grid = self.anchor_grid();
         anchors[..vals.count]
             .par_iter_mut()
             .enumerate()

@@ -1017,13 +1017,8 @@ fn glossy_light_follows_the_frames_camera() {
 /// wall quads, lit by a low sun, loaded from a file as a user's would be (so
 /// the ground is cut into rings of coarser lightmap texels).
 fn ground_and_room_scene() -> Scene {
-    let folder =
-        std::env::temp_dir().join(format!("relight-lightskin-ground-{}", std::process::id()));
     let sun = "[[lights]]\nkind = \"directional\"\ndirection = [0.5, -0.6, 0.3]\nirradiance = [3, 3, 3]\n";
-    let path = relight_scene::generate::write_ground_and_room(&folder, sun).unwrap();
-    let scene = relight_scene::load_scene(&path).unwrap();
-    let _ = std::fs::remove_dir_all(&folder);
-    scene
+    relight_scene::generate::load_ground_and_room(sun).unwrap()
 }
 
 /// Sparse points and a sun's VALs follow the lightmap's detail: a ground

@@ -109,7 +109,7 @@ impl PicPart {
         // Surfels enclosed by geometry (floor under a box, faces pressed
         // together) neither see nor are seen: in a cluster they would only
         // dilute its radiosity, so they go.
-        let lift = 4.0 * relight_trace::direct::ray_epsilon_for(&context.bvh);
+        let lift = context.surface_lift();
         let keep: Vec<bool> = (0..surfels.len())
             .into_par_iter()
             .map(|i| !context.is_inside_geometry(surfels.positions[i] + surfels.normals[i] * lift))

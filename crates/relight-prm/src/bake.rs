@@ -1111,12 +1111,7 @@ mod tests {
     /// A 120 m two-triangle ground under an open 6 x 3 x 8 m room, loaded
     /// from a file so that the ground is cut into rings of coarser texels.
     fn ground_and_room() -> Scene {
-        let folder =
-            std::env::temp_dir().join(format!("relight-prm-ground-{}", std::process::id()));
-        let path = relight_scene::generate::write_ground_and_room(&folder, "").unwrap();
-        let scene = relight_scene::load_scene(&path).unwrap();
-        let _ = std::fs::remove_dir_all(&folder);
-        scene
+        relight_scene::generate::load_ground_and_room("").unwrap()
     }
 
     #[test]

@@ -133,7 +133,7 @@ impl PanePoints {
         for round in 0..=COVERAGE_ROUNDS {
             // Points only ever add candidates, so a covered receiver stays
             // covered: each round tests the ones the last left uncovered.
-            let taps = Upsampling::build_for(context, &points, spacing, &uncovered);
+            let taps = Upsampling::build_for(context, &points, spacing, &uncovered, false);
             uncovered = uncovered
                 .iter()
                 .zip(&taps.weights)
@@ -226,30 +226,40 @@ impl Upsampling {
             return Self::default();
         }
         let every: Vec<u32> = (0..context.atlas.receivers.len() as u32).collect();
-        Self::build_for(context, points, spacing, &every)
+        Self::build_for(context, points, spacing, &every, true)
     }
 
     /// Taps of the receivers `targets`, in their order.
-    fn build_for(context: &SceneContext, points: &[u32], spacing: f32, targets: &[u32]) -> Self {
+    ///
+    /// With `check_hidden`, a hidden pane point lights only itself: its
+    /// lift can cross a thin gap to the visible layer, where the visibility
+    /// ray below would let it through. [`PanePoints::select`] never
+    /// chooses one, so only a bake made before it kept pane points off
+    /// hidden surfaces holds any, and only loading a bake checks.
+    fn build_for(
+        context: &SceneContext,
+        points: &[u32],
+        spacing: f32,
+        targets: &[u32],
+        check_hidden: bool,
+    ) -> Self {
         let receivers = &context.atlas.receivers;
         let reach = spacing * REACH_TEXELS;
         let grid = PointGrid::new(points, &receivers.positions, reach);
         let lift = visibility_lift(context, spacing);
-        // A hidden pane point (one left without a visible point of its own)
-        // lights only itself: its lift can cross the thin gap to the
-        // visible layer, so the visibility ray below would let it through.
-        let hidden: Vec<bool> = grid
-            .points
-            .par_iter()
-            .map(|&point| {
-                let index = point as usize;
-                context.is_hidden_surface_point(
-                    receivers.positions[index],
-                    receivers.normals[index],
-                    lift,
-                )
-            })
-            .collect();
+        let hidden: Option<Vec<bool>> = check_hidden.then(|| {
+            grid.points
+                .par_iter()
+                .map(|&point| {
+                    let index = point as usize;
+                    context.is_hidden_surface_point(
+                        receivers.positions[index],
+                        receivers.normals[index],
+                        lift,
+                    )
+                })
+                .collect()
+        });
         let (points, weights) = targets
             .par_iter()
             .map_init(Vec::new, |candidates, &receiver| {
@@ -273,7 +283,7 @@ impl Upsampling {
                 for &(distance, slot) in candidates.iter().take(CANDIDATES) {
                     let point = grid.points[slot as usize] as usize;
                     let visible = point == receiver
-                        || !hidden[slot as usize] && {
+                        || !hidden.as_ref().is_some_and(|hidden| hidden[slot as usize]) && {
                             let from = position + normal * lift;
                             let to = receivers.positions[point] + receivers.normals[point] * lift;
                             !context.bvh.occluded(&Ray {

@@ -96,15 +96,11 @@ pub fn ground_and_room_obj(ground_side: f32, [width, height, depth]: [f32; 3]) -
     obj
 }
 
-/// Writes [`ground_and_room_obj`] (120 m of ground, a 6 x 3 x 8 m room) as
-/// `mesh.obj` and a `scene.toml` naming it, followed by `scene_tail`, into
-/// `folder` (created if needed); returns the path of `scene.toml`. Loaded,
-/// the ground is cut into rings of coarser lightmap texels, as a user's
-/// file would be.
-pub fn write_ground_and_room(folder: &Path, scene_tail: &str) -> Result<PathBuf, SceneError> {
-    let obj = ground_and_room_obj(120.0, [6.0, 3.0, 8.0]);
-    let toml = format!("mesh = \"mesh.obj\"\n{scene_tail}");
-    write_scene_files(folder, &[("mesh.obj", &obj), ("scene.toml", &toml)])
+/// Loads [`ground_and_room_obj`] (120 m of ground, a 6 x 3 x 8 m room)
+/// with `scene_tail` in its scene file ([`load_obj_scene`]): the ground is
+/// cut into rings of coarser lightmap texels, as a user's file would be.
+pub fn load_ground_and_room(scene_tail: &str) -> Result<crate::Scene, SceneError> {
+    load_obj_scene(&ground_and_room_obj(120.0, [6.0, 3.0, 8.0]), scene_tail)
 }
 
 /// OBJ text of quads, each wound to face the way it is asked to.

@@ -116,9 +116,10 @@ impl SceneContext {
         back_hits * 4 > hits
     }
 
-    /// How far [`SceneContext::is_hidden_surface_point`] lifts a surface
-    /// point before testing it: clear of the surface's own triangles at
-    /// any distance from the origin.
+    /// The smallest lift for testing a surface point with
+    /// [`SceneContext::is_hidden_surface_point`] or
+    /// [`SceneContext::is_inside_geometry`]: four ray epsilons, clear of
+    /// the surface's own triangles at any distance from the origin.
     pub fn surface_lift(&self) -> f32 {
         4.0 * relight_trace::direct::ray_epsilon_for(&self.bvh)
     }
