@@ -16,6 +16,10 @@
 //! bilinear lookup anywhere inside a chart never fetches an empty texel and
 //! never mixes in a neighbouring chart (seam-aware). The dilation is a
 //! precomputed gather list, so the per-frame cost is one copy per gutter texel.
+//! Covered texels that nobody sees (the floor under an object standing on
+//! it) may head that list, each showing a seen texel beside it
+//! ([`Atlas::fill_hidden`], decided with ray casts by the technique crate):
+//! their receivers keep their own values, only what the texel shows changes.
 //!
 //! Texel density is uniform inside the scene's detail region and coarsens
 //! ring by ring outside it ([`crate::detail`]): charts grow within one ring
@@ -119,8 +123,14 @@ pub struct Atlas {
     /// For each texel, its receiver index or `u32::MAX` when empty.
     pub receiver_of_texel: Vec<u32>,
     pub receivers: Receivers,
-    /// (empty texel, covered texel it copies), both as texel indices.
+    /// (texel, texel whose value it shows), both as texel indices, applied
+    /// in order: first the [`Self::filled_texels`] covered texels nobody
+    /// sees, each showing a seen texel beside it ([`Self::fill_hidden`]),
+    /// then the empty gutter texels, each copying a covered texel.
     pub dilation: Vec<(u32, u32)>,
+    /// How many pairs at the start of [`Self::dilation`] fill hidden
+    /// texels.
+    pub filled_texels: usize,
     /// True when the mesh's own second UV set was used.
     pub from_mesh_uvs: bool,
     pub chart_count: usize,
@@ -330,6 +340,7 @@ impl Atlas {
             receiver_of_texel,
             receivers,
             dilation,
+            filled_texels: 0,
             from_mesh_uvs: false,
             chart_count: 0,
             metres_per_texel: 0.0,
@@ -360,11 +371,32 @@ impl Atlas {
         self.dilate(lightmap);
     }
 
-    /// Copies covered texels into the gutter texels around them.
+    /// Shows seen texels in the hidden texels beside them, then copies
+    /// covered texels into the gutter texels around them.
     pub fn dilate(&self, lightmap: &mut [Rgb]) {
         for &(target, source) in &self.dilation {
             lightmap[target as usize] = lightmap[source as usize];
         }
+    }
+
+    /// Makes each covered texel in `pairs` (texel, seen texel beside it)
+    /// show its seen texel in every dilated lightmap and in
+    /// [`Self::dilated_receiver_of_texel`], ahead of the gutters. The
+    /// receivers keep their texels: a technique still addresses a hidden
+    /// receiver's own value through [`Self::receiver_of_texel`] and
+    /// [`Receivers::texels`]; only what the texel shows changes.
+    ///
+    /// Under an object that stands on or in a floor, the floor's texels
+    /// are inside the object and their irradiance is zero; every bilinear
+    /// footprint beside the object's foot (the renderer's, the final
+    /// gather's, an engine's texture filter) would blend those zeros in, a
+    /// dark halo around the foot.
+    pub fn fill_hidden(&mut self, mut pairs: Vec<(u32, u32)>) {
+        pairs.sort_unstable();
+        pairs.dedup_by_key(|pair| pair.0);
+        self.dilation.drain(..self.filled_texels);
+        self.filled_texels = pairs.len();
+        self.dilation.splice(0..0, pairs);
     }
 
     /// The dilation pairs that matter for a lightmap that is zero except
@@ -395,9 +427,9 @@ impl Atlas {
         a * (1.0 - barycentric.x - barycentric.y) + b * barycentric.x + c * barycentric.y
     }
 
-    /// The receiver of every texel, with gutter texels naming the receiver
-    /// of the covered texel they copy (`u32::MAX` where neither): what a
-    /// lookup that lands on a gutter should read.
+    /// The receiver every texel shows: its own, or for hidden and gutter
+    /// texels the receiver of the texel they copy (`u32::MAX` where
+    /// neither): what a lookup that lands on a texel should read.
     pub fn dilated_receiver_of_texel(&self) -> Vec<u32> {
         let mut receivers = self.receiver_of_texel.clone();
         for &(target, source) in &self.dilation {

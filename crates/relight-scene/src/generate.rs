@@ -140,6 +140,38 @@ impl QuadObj {
         );
     }
 
+    /// An axis-aligned box of outward faces from `low` to `high`, with or
+    /// without its bottom face.
+    fn cuboid(&mut self, low: Vec3, high: Vec3, bottom: bool) {
+        let centre = (low + high) / 2.0;
+        for axis in 0..3 {
+            for (side, at) in [(-1.0f32, low[axis]), (1.0, high[axis])] {
+                if axis == 1 && side < 0.0 && !bottom {
+                    continue;
+                }
+                let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                let corner = |u: f32, v: f32| {
+                    let mut point = centre;
+                    point[axis] = at;
+                    point[a] = u;
+                    point[b] = v;
+                    point
+                };
+                let mut facing = Vec3::ZERO;
+                facing[axis] = side;
+                self.quad(
+                    [
+                        corner(low[a], low[b]),
+                        corner(high[a], low[b]),
+                        corner(high[a], high[b]),
+                        corner(low[a], high[b]),
+                    ],
+                    facing,
+                );
+            }
+        }
+    }
+
     /// The four walls and the ceiling of a room, `[width, height, depth]`
     /// with its floor at y = 0 and centred on x and z, facing in.
     fn walls_and_ceiling(&mut self, [width, height, depth]: [f32; 3]) {
@@ -195,6 +227,59 @@ pub fn room_on_a_longer_floor_obj(beyond: f32) -> String {
     let mut obj = QuadObj::default();
     obj.level([-x, x + beyond], 0.0, [-z, z], Vec3::Y);
     obj.walls_and_ceiling(TEST_ROOM);
+    obj.text
+}
+
+/// An object of [`room_with_objects_on_its_floor_obj`]: its footprint on
+/// the floor, `[x0, x1]` by `[z0, z1]`.
+pub type Footprint = [[f32; 2]; 2];
+
+/// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
+/// facing in, with four boxes of outward faces on its floor as real models
+/// stand them: an open-bottomed box 7 mm above the floor, a box with a
+/// bottom flush with it, an open-bottomed box 15 mm into it and a box with
+/// a bottom 20 mm into it, one in each quarter of the room. Returns the
+/// boxes' footprints with the text.
+pub fn room_with_objects_on_its_floor_obj() -> (String, Vec<Footprint>) {
+    let [width, _, depth] = TEST_ROOM;
+    let (x, z) = (width / 2.0, depth / 2.0);
+    let mut obj = QuadObj::default();
+    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
+    obj.walls_and_ceiling(TEST_ROOM);
+    // (footprint, bottom's height, has a bottom, top's height)
+    let boxes: [(Footprint, f32, bool, f32); 4] = [
+        ([[-1.47, -0.88], [-1.37, -0.83]], 0.007, false, 0.7),
+        ([[0.61, 1.34], [-1.29, -0.87]], 0.0, true, 0.5),
+        ([[-1.27, -0.74], [0.72, 1.38]], -0.015, false, 0.9),
+        ([[0.83, 1.22], [0.79, 1.46]], -0.02, true, 0.4),
+    ];
+    for ([xs, zs], bottom, has_bottom, top) in boxes {
+        obj.cuboid(
+            Vec3::new(xs[0], bottom, zs[0]),
+            Vec3::new(xs[1], top, zs[1]),
+            has_bottom,
+        );
+    }
+    (obj.text, boxes.iter().map(|entry| entry.0).collect())
+}
+
+/// OBJ faces (no materials) of a closed room of single planes facing in,
+/// 6 x 2.5 x 4 m with its floor at y = 0 and centred on x and z, split
+/// at x = 0 into two rooms by a partition `thickness` thick from floor to
+/// ceiling: a box of outward faces standing on the one floor that runs
+/// under it from room to room.
+pub fn two_rooms_on_one_floor_obj(thickness: f32) -> String {
+    let room = [6.0, 2.5, 4.0];
+    let (x, z) = (room[0] / 2.0, room[2] / 2.0);
+    let mut obj = QuadObj::default();
+    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
+    obj.walls_and_ceiling(room);
+    let half = thickness / 2.0;
+    obj.cuboid(
+        Vec3::new(-half, 0.0, -z),
+        Vec3::new(half, room[1], z),
+        false,
+    );
     obj.text
 }
 

@@ -89,6 +89,12 @@ pub struct Srp {
     /// identical to a dilated one, and a frame saves both the scattered
     /// texel writes and the dilation's copies.
     slot_of_texel: Vec<u32>,
+    /// Per receiver, its own `irradiance` slot. A hidden receiver's texel
+    /// shows a seen neighbour's slot ([`Atlas::fill_hidden`]), so a
+    /// receiver's value is never addressed through its texel.
+    ///
+    /// [`Atlas::fill_hidden`]: relight_scene::atlas::Atlas::fill_hidden
+    slot_of_receiver: Vec<u32>,
     timings: StageTimings,
     /// Round-robin position of staggered updates.
     next_probe: usize,
@@ -170,12 +176,12 @@ impl Srp {
         let probe_count = bake.probes.len();
         // The zero slot past the receivers is where texels showing none
         // read.
-        let slot_of_texel = texel_slots(
-            &context,
+        let slot_of_receiver = receiver_slots(
             &bake.clusters.receivers,
             bake.receiver_count,
             receivers.len() as u32,
         );
+        let slot_of_texel = texel_slots(&context, &slot_of_receiver, receivers.len() as u32);
         let mut visible_index_of = vec![u32::MAX; receivers.len()];
         for (index, &receiver) in visible.iter().enumerate() {
             visible_index_of[receiver as usize] = index as u32;
@@ -227,6 +233,7 @@ impl Srp {
             receiver_values: vec![Rgb::ZERO; context.atlas.receivers.len()],
             irradiance: vec![Rgb9e5::default(); receivers.len() + 1],
             slot_of_texel,
+            slot_of_receiver,
             timings: StageTimings::default(),
             next_probe: 0,
             refreshing: Vec::with_capacity(probe_count),
@@ -255,8 +262,7 @@ impl Srp {
 
     /// The lightmap slot of receiver `index`.
     fn slot_of_receiver(&self, index: u32) -> usize {
-        let [x, y] = self.context.atlas.receivers.texels[index as usize];
-        self.slot_of_texel[(y * self.context.atlas.width + x) as usize] as usize
+        self.slot_of_receiver[index as usize] as usize
     }
 
     /// Runs the final gather over the reconstructed lightmap and writes
@@ -280,16 +286,12 @@ impl Srp {
     /// Unpacks the lightmap into [`Self::receiver_values`], in receiver
     /// order.
     fn gather_receiver_values(&mut self) {
-        let width = self.context.atlas.width as usize;
-        let (irradiance, slot_of_texel) = (&self.irradiance, &self.slot_of_texel);
+        let (irradiance, slot_of_receiver) = (&self.irradiance, &self.slot_of_receiver);
         self.receiver_values
             .par_iter_mut()
             .with_min_len(1024)
-            .zip(self.context.atlas.receivers.texels.par_iter())
-            .for_each(|(value, &[x, y])| {
-                *value =
-                    irradiance[slot_of_texel[y as usize * width + x as usize] as usize].to_rgb();
-            });
+            .zip(slot_of_receiver.par_iter())
+            .for_each(|(value, &slot)| *value = irradiance[slot as usize].to_rgb());
     }
 
     /// The probe radiance vector (lambda) after the last update.
@@ -753,27 +755,23 @@ fn glossy_slots(context: &SceneContext, bake: &SrpBake) -> Vec<u32> {
     if radiance.bands == 0 {
         return Vec::new();
     }
-    texel_slots(
-        context,
-        &radiance.clusters.receivers,
-        bake.receiver_count,
-        u32::MAX,
-    )
+    let slot_of_receiver =
+        receiver_slots(&radiance.clusters.receivers, bake.receiver_count, u32::MAX);
+    texel_slots(context, &slot_of_receiver, u32::MAX)
 }
 
-/// Per atlas texel, the position in `ordered_receivers` of the receiver it
-/// shows (gutter texels through the covered texel they copy), or
-/// `missing` where there is none.
-fn texel_slots(
-    context: &SceneContext,
-    ordered_receivers: &[u32],
-    receiver_count: usize,
-    missing: u32,
-) -> Vec<u32> {
+/// Per receiver, its position in `ordered_receivers`, or `missing`.
+fn receiver_slots(ordered_receivers: &[u32], receiver_count: usize, missing: u32) -> Vec<u32> {
     let mut slot_of_receiver = vec![missing; receiver_count];
     for (slot, &receiver) in ordered_receivers.iter().enumerate() {
         slot_of_receiver[receiver as usize] = slot as u32;
     }
+    slot_of_receiver
+}
+
+/// Per atlas texel, the slot of the receiver it shows (hidden and gutter
+/// texels through the texel they copy), or `missing` where there is none.
+fn texel_slots(context: &SceneContext, slot_of_receiver: &[u32], missing: u32) -> Vec<u32> {
     context
         .atlas
         .dilated_receiver_of_texel()
@@ -985,6 +983,7 @@ impl Technique for Srp {
                 self.irradiance.len() * 4,
             ),
             MemoryEntry::new("lightmap slot per texel", self.slot_of_texel.len() * 4),
+            MemoryEntry::new("slot per receiver", self.slot_of_receiver.len() * 4),
             MemoryEntry::new("receiver values", self.receiver_values.len() * 12),
             MemoryEntry::new(
                 "radiance transport matrices and lists (f16, u32)",

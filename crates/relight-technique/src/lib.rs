@@ -36,7 +36,9 @@ pub use builtin::{
     reference_irradiance_at, reference_receiver_irradiance, DirectKind, ReferenceKind,
     ReferenceLightmap, ReferenceParams,
 };
-pub use context::{build_atlas, relocate_receivers, ContextSettings, SceneContext};
+pub use context::{
+    build_atlas, fill_hidden_texels, relocate_receivers, ContextSettings, SceneContext,
+};
 pub use estimate::{available_bytes, format_bytes, parse_size, resident_bytes, BakeEstimate};
 pub use final_gather::{FinalGather, FinalGatherSettings, GatherReach};
 pub use gather::SurfaceGather;
