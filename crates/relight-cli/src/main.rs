@@ -914,10 +914,10 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
     say!("texel size      {:.4} m", atlas.metres_per_texel);
     say!("receivers       {}", atlas.receivers.len());
     say!("coverage        {:.1} %", atlas.coverage() * 100.0);
-    if atlas.filled_texels > 0 {
+    if atlas.filled_texels() > 0 {
         say!(
             "hidden texels   {} covered texels nobody sees show a seen neighbour (objects' feet)",
-            atlas.filled_texels
+            atlas.filled_texels()
         );
     }
     if let Some(region) = &atlas.detail {

@@ -124,13 +124,10 @@ pub struct Atlas {
     pub receiver_of_texel: Vec<u32>,
     pub receivers: Receivers,
     /// (texel, texel whose value it shows), both as texel indices, applied
-    /// in order: first the [`Self::filled_texels`] covered texels nobody
-    /// sees, each showing a seen texel beside it ([`Self::fill_hidden`]),
-    /// then the empty gutter texels, each copying a covered texel.
+    /// in order: first the covered texels nobody sees, each showing a seen
+    /// texel beside it ([`Self::fill_hidden`]), then the empty gutter
+    /// texels, each copying a covered texel.
     pub dilation: Vec<(u32, u32)>,
-    /// How many pairs at the start of [`Self::dilation`] fill hidden
-    /// texels.
-    pub filled_texels: usize,
     /// True when the mesh's own second UV set was used.
     pub from_mesh_uvs: bool,
     pub chart_count: usize,
@@ -340,7 +337,6 @@ impl Atlas {
             receiver_of_texel,
             receivers,
             dilation,
-            filled_texels: 0,
             from_mesh_uvs: false,
             chart_count: 0,
             metres_per_texel: 0.0,
@@ -394,9 +390,19 @@ impl Atlas {
     pub fn fill_hidden(&mut self, mut pairs: Vec<(u32, u32)>) {
         pairs.sort_unstable();
         pairs.dedup_by_key(|pair| pair.0);
-        self.dilation.drain(..self.filled_texels);
-        self.filled_texels = pairs.len();
+        let receiver_of_texel = &self.receiver_of_texel;
+        self.dilation
+            .retain(|&(target, _)| receiver_of_texel[target as usize] == EMPTY);
         self.dilation.splice(0..0, pairs);
+    }
+
+    /// How many covered texels show another texel ([`Self::fill_hidden`]):
+    /// the dilation pairs whose target is covered.
+    pub fn filled_texels(&self) -> usize {
+        self.dilation
+            .iter()
+            .take_while(|&&(target, _)| self.receiver_of_texel[target as usize] != EMPTY)
+            .count()
     }
 
     /// The dilation pairs that matter for a lightmap that is zero except

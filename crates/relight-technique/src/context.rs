@@ -638,7 +638,7 @@ mod tests {
         let dark = reads.iter().filter(|&&value| value < 0.9).count();
         println!(
             "{} hidden texels filled; {} lookups, mean {mean:.3}, {dark} under 0.9",
-            atlas.filled_texels,
+            atlas.filled_texels(),
             reads.len()
         );
         assert!(mean > 0.99 && dark == 0, "mean {mean}, {dark} dark");
@@ -692,7 +692,7 @@ mod tests {
             }
             println!(
                 "partition {thickness} m: {} texels filled, lit side reads at least {darkest_lit:.3}, dark side at most {brightest_dark:.3}",
-                atlas.filled_texels
+                atlas.filled_texels()
             );
             assert!(brightest_dark < 0.02, "{thickness} m: {brightest_dark}");
             if thickness >= 3.0 * texel {
