@@ -534,7 +534,7 @@ fn closed_boxes_within_fifteen_percent_over_tiles() {
     for scene in relight_render::convergence::CLOSED_BOXES {
         let context = relight_render::convergence::shipped_context(scene, 2);
         let error_at = |params: Vec<(String, String)>| {
-            let bake = PrmKind.bake(&context, &params, &NoProgress).unwrap();
+            let bake = relight_technique::robustness::shared_bake(&PrmKind, &context, &params);
             let prm = updated_from(&context, &bake, &params);
             relight_render::convergence::measure_against_path_tracer(
                 &context,

@@ -214,7 +214,12 @@ impl ReferenceSet {
                     }
                 }
             }
-            let _ = std::fs::write(file, bytes);
+            // Written aside and renamed, so a process reading the folder
+            // meanwhile never takes a part-written file for a reference.
+            let aside = file.with_extension(format!("{}.part", std::process::id()));
+            if std::fs::write(&aside, bytes).is_ok() && std::fs::rename(&aside, &file).is_err() {
+                let _ = std::fs::remove_file(&aside);
+            }
         }
         set
     }
@@ -561,32 +566,57 @@ impl Measurement {
     }
 }
 
+/// The environment variable naming a folder where
+/// [`measure_against_path_tracer`] keeps its references for later
+/// processes. CI points it at a folder made for its one run, so the test
+/// binaries of several techniques that measure the same shipped scenes
+/// trace each reference once. Unset, nothing outlives the process: a
+/// folder kept longer would outlive the path tracer code that filled it.
+pub const TEST_REFERENCE_FOLDER: &str = "RELIGHT_TEST_REFERENCES";
+
 /// `technique`, already updated under the scene's lights, against the path
 /// tracer with as many bounces as it computes (`samples` paths per receiver
-/// and point in space, `spp` per pixel, nothing cached): the measurement a
-/// convergence study makes of one setting, and the reference's own noise.
+/// and point in space, `spp` per pixel): the measurement a convergence study
+/// makes of one setting, and the reference's own noise. Each reference is
+/// traced once per process (and kept in [`TEST_REFERENCE_FOLDER`] where
+/// that is set): tests measure several techniques or settings against it.
 pub fn measure_against_path_tracer(
     context: &SceneContext,
     technique: &dyn Technique,
     samples: u32,
     spp: u32,
 ) -> (Measurement, Noise) {
+    use std::collections::HashMap;
+    use std::sync::{Arc, Mutex, OnceLock};
+    type Shared = Arc<OnceLock<Arc<ReferenceSet>>>;
+    static REFERENCES: OnceLock<Mutex<HashMap<u64, Shared>>> = OnceLock::new();
     let split = Split::of(context);
     let settings = PathSettings {
         max_bounces: technique.reference_bounces(PathSettings::default().max_bounces),
         ..PathSettings::default()
     };
     let progress = relight_technique::NoProgress;
-    let reference = ReferenceSet::cached(
-        context,
-        &split.space,
-        settings,
-        samples,
-        spp,
-        None,
-        &progress,
-    );
-    let (measurement, _) = Measurement::of(context, technique, &reference, &split, 4, &progress);
+    let slot = REFERENCES
+        .get_or_init(Default::default)
+        .lock()
+        // A test that panicked while holding the lock left the map whole.
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+        .entry(ReferenceSet::key(context, settings, samples, spp))
+        .or_default()
+        .clone();
+    let reference = slot.get_or_init(|| {
+        let folder = std::env::var_os(TEST_REFERENCE_FOLDER).map(std::path::PathBuf::from);
+        Arc::new(ReferenceSet::cached(
+            context,
+            &split.space,
+            settings,
+            samples,
+            spp,
+            folder.as_deref(),
+            &progress,
+        ))
+    });
+    let (measurement, _) = Measurement::of(context, technique, reference, &split, 4, &progress);
     (measurement, reference.noise(&split.visible))
 }
 

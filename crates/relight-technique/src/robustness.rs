@@ -1,10 +1,49 @@
-//! Damaged bake payloads for tests: a technique must refuse them with an
-//! error or run them, never panic ("no panics on any input file").
+//! Checks that techniques' tests share: damaged bake payloads (a technique
+//! must refuse them with an error or run them, never panic: "no panics on
+//! any input file"), sharded bakes that must merge to the whole, and bakes
+//! made once per test process.
 
 use crate::{Frame, NoProgress, SceneContext, TechniqueKind};
 use relight_core::sampling::Pcg32;
+use std::collections::HashMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// `kind`'s bake of `context` with `params`, made once per process for each
+/// technique, scene fingerprint ([`SceneContext::fingerprint`]) and
+/// parameter list, and shared: a bake does not depend on the lights or the
+/// camera, so tests that measure one bake under several lights or at
+/// several image sizes need not bake it again. Tests asking for the same
+/// bake at once wait for one of them to make it. Panics if the bake fails.
+pub fn shared_bake(
+    kind: &dyn TechniqueKind,
+    context: &SceneContext,
+    params: &[(String, String)],
+) -> Arc<Vec<u8>> {
+    type Key = (String, u64, Vec<(String, String)>);
+    type Slot = Arc<OnceLock<Arc<Vec<u8>>>>;
+    static BAKES: OnceLock<Mutex<HashMap<Key, Slot>>> = OnceLock::new();
+    let key = (
+        kind.name().to_string(),
+        context.fingerprint(),
+        params.to_vec(),
+    );
+    let slot = {
+        // A test that panicked while holding the lock left the map whole.
+        let mut bakes = BAKES
+            .get_or_init(Default::default)
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        bakes.entry(key).or_default().clone()
+    };
+    slot.get_or_init(|| {
+        Arc::new(
+            kind.bake(context, params, &NoProgress)
+                .unwrap_or_else(|error| panic!("{} bakes: {error}", kind.name())),
+        )
+    })
+    .clone()
+}
 
 /// Loads `mutations` copies of `payload`, each with one to four random bit
 /// flips or a truncation, and runs one update with every copy the
