@@ -18,13 +18,13 @@ use std::time::Instant;
 #[derive(clap::Args, Clone, Debug)]
 pub struct CompareSettings {
     /// Primary rays per pixel for technique images.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     pub spp: u32,
     /// Paths per pixel for the reference image.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_spp: u32,
     /// Paths per receiver for the reference lightmap.
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_samples: u32,
     /// Indirect bounces of the reference: 0 = direct only.
     #[arg(long, default_value_t = 64)]
@@ -32,7 +32,7 @@ pub struct CompareSettings {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Update runs timed per technique (median reported).
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     pub timing_frames: u32,
     /// Technique parameter, repeatable: --set TECHNIQUE.key=value (e.g. prm.top_k=8).
     #[arg(long = "set", value_name = "TECHNIQUE.KEY=VALUE")]

@@ -29,13 +29,13 @@ use std::time::Instant;
 #[derive(clap::Args, Clone, Debug)]
 pub struct MeasureSettings {
     /// Primary rays per pixel for the technique's image.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     pub spp: u32,
     /// Paths per pixel for the reference image.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_spp: u32,
     /// Paths per receiver (and point in space) for the reference.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_samples: u32,
     /// Indirect bounces of the reference (a technique that computes fewer
     /// is measured against a reference limited to as many).

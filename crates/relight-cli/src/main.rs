@@ -104,7 +104,7 @@ enum Command {
         #[command(flatten)]
         options: SceneOptions,
         /// Samples per pixel (path tracer) or primary rays per pixel (techniques).
-        #[arg(long, default_value_t = 64)]
+        #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
         spp: u32,
         /// Indirect bounces for the path tracer: 0 = direct light only.
         #[arg(long, default_value_t = 64)]

@@ -81,6 +81,23 @@ fn render_writes_exr_and_png() {
 fn user_errors_name_the_culprit() {
     let missing = run_err(relight().args(["info", "-q", "no/such/scene.toml"]));
     assert!(missing.contains("no/such/scene.toml"), "{missing}");
+    // The operating system's reason once, not once per link of the chain.
+    assert_eq!(missing.matches("os error 2").count(), 1, "{missing}");
+    let folder = tempfile::tempdir().unwrap();
+    let without_mesh = folder.path().join("scene.toml");
+    std::fs::write(&without_mesh, "mesh = \"absent.obj\"\n").unwrap();
+    let mesh = run_err(relight().args(["info", "-q"]).arg(&without_mesh));
+    assert!(mesh.contains("absent.obj"), "{mesh}");
+    assert_eq!(mesh.matches("os error 2").count(), 1, "{mesh}");
+    let no_paths = folder.path().join("never-written.png");
+    let paths = run_err(
+        relight()
+            .args(["render", "-q", "--technique", "direct", "--spp", "0", "-o"])
+            .arg(&no_paths)
+            .arg(scene("cornell-box")),
+    );
+    assert!(paths.contains("--spp"), "{paths}");
+    assert!(!no_paths.exists());
     let technique = run_err(
         relight()
             .args([

@@ -53,18 +53,15 @@ pub struct ExportSettings {
 /// Why an export failed; each names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
-    #[error("cannot write {path}: {source}")]
+    // The cause's message is part of this one, not a source as well: a
+    // caller printing the chain would show it twice.
+    #[error("cannot write {path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
-    #[error("cannot encode {path}: {source}")]
-    Ktx2 {
-        path: PathBuf,
-        #[source]
-        source: Ktx2Error,
-    },
+    #[error("cannot encode {path}: {error}")]
+    Ktx2 { path: PathBuf, error: Ktx2Error },
     #[error("cannot encode {path}: {message}")]
     Image { path: PathBuf, message: String },
 }
@@ -89,7 +86,7 @@ pub fn export_scene(
 ) -> Result<ExportSummary, ExportError> {
     let io = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| ExportError::Io { path, source }
+        move |error| ExportError::Io { path, error }
     };
     std::fs::create_dir_all(folder).map_err(io(folder))?;
     let mut summary = ExportSummary {
@@ -113,9 +110,9 @@ pub fn export_scene(
             texels: &texels,
         }
         .to_bytes(settings.zstd_level)
-        .map_err(|source| ExportError::Ktx2 {
+        .map_err(|error| ExportError::Ktx2 {
             path: folder.join(name),
-            source,
+            error,
         })
     };
 

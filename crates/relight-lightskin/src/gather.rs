@@ -27,8 +27,8 @@
 //! gathers the eight anchors' bits from the row and masks the geometry
 //! term).
 
+use crate::vals::{row_sees, MIXED_WORDS};
 use crate::vals::{Vals, LANES};
-use crate::visibility::{row_sees, MIXED_WORDS};
 use glam::Vec3;
 use relight_core::Rgb;
 

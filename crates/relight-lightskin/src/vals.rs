@@ -23,6 +23,21 @@ const MAX_GRAZING_STRETCH: f32 = 5.0;
 /// The site of a VAL that is not on the static mesh.
 pub const NO_SITE: u32 = u32::MAX;
 
+/// Bits per word of a sparse point's visibility row (see
+/// [`crate::visibility`]): the rows are the VALs' anchors' bits, so the
+/// VALs, which group their blocks by word, and the rows share the layout.
+pub const WORD_BITS: usize = 32;
+
+/// [`Vals::block_word`] of a block whose anchors fall in several words.
+pub const MIXED_WORDS: u32 = u32::MAX;
+
+/// Whether a visibility row has `anchor`'s bit.
+#[inline]
+pub fn row_sees(row: &[u32], anchor: u32) -> bool {
+    let anchor = anchor as usize;
+    row[anchor / WORD_BITS] >> (anchor % WORD_BITS) & 1 != 0
+}
+
 /// Columns of [`Vals`].
 const COLUMNS: usize = 14;
 
@@ -70,7 +85,7 @@ pub struct Vals {
     pub site_barycentric: Vec<Vec2>,
     /// Per block of [`LANES`] VALs, when anchored: the one word of a
     /// visibility row that holds all their anchors
-    /// ([`crate::visibility::MIXED_WORDS`] where they span several), and
+    /// ([`MIXED_WORDS`] where they span several), and
     /// those anchors' bits in it.
     pub block_word: Vec<u32>,
     pub block_bits: Vec<u32>,
@@ -239,7 +254,6 @@ impl Vals {
     /// blocks of eight read one word of a receiver's visibility row, which
     /// the kernel loads once instead of gathering eight.
     pub fn group_by_anchor(&mut self, anchors: Vec<u32>) {
-        use crate::visibility::{MIXED_WORDS, WORD_BITS};
         assert_eq!(anchors.len(), self.padded_len());
         self.anchor = anchors;
         let mut order: Vec<u32> = (0..self.count as u32).collect();

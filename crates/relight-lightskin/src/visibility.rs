@@ -23,7 +23,7 @@
 //! other point near it, the VAL is hidden and seen by no point.
 
 use crate::points::{Nearest, PointGrid};
-use crate::vals::{Vals, NO_SITE};
+use crate::vals::{Vals, NO_SITE, WORD_BITS};
 use glam::Vec3;
 use rayon::prelude::*;
 use relight_scene::atlas::Atlas;
@@ -45,12 +45,6 @@ const WIDER_REACH: f32 = 4.0;
 /// A VAL's anchor while it is being replaced: it does not see the anchor
 /// its receiver gave it.
 const BLOCKED: u32 = u32::MAX;
-
-/// Bits per visibility word.
-pub const WORD_BITS: usize = 32;
-
-/// [`Vals::block_word`] of a block whose anchors fall in several words.
-pub const MIXED_WORDS: u32 = u32::MAX;
 
 /// A VAL's anchor must face its side of the surface this closely (cosine
 /// between the point's and the VAL's normals): the nearest point of a
@@ -381,11 +375,4 @@ fn sees_lifted(bvh: &Bvh, lift: f32, from: (Vec3, Vec3), to: (Vec3, Vec3)) -> bo
         direction: target - origin,
         t_max: 1.0 - 1e-3,
     })
-}
-
-/// Whether a visibility row has `anchor`'s bit.
-#[inline]
-pub fn row_sees(row: &[u32], anchor: u32) -> bool {
-    let anchor = anchor as usize;
-    row[anchor / WORD_BITS] >> (anchor % WORD_BITS) & 1 != 0
 }

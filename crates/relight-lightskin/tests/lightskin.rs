@@ -263,11 +263,11 @@ fn simd_gathering_with_visibility_matches_portable_gathering() {
     vals.group_by_anchor(anchors);
     assert!(vals
         .block_word
-        .contains(&relight_lightskin::visibility::MIXED_WORDS));
+        .contains(&relight_lightskin::vals::MIXED_WORDS));
     assert!(vals
         .block_word
         .iter()
-        .any(|&word| word != relight_lightskin::visibility::MIXED_WORDS));
+        .any(|&word| word != relight_lightskin::vals::MIXED_WORDS));
     for _ in 0..50 {
         let row: Vec<u32> = (0..7)
             .map(|_| (rng.next_f32() * u32::MAX as f32) as u32)

@@ -9,11 +9,17 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum SceneError {
-    #[error("{path}: cannot read: {source}")]
+    // The operating system's message is part of this one, not a source
+    // as well: a caller printing the chain would show it twice.
+    #[error("{path}: cannot read: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
+    },
+    #[error("{path}: cannot write: {error}")]
+    Write {
+        path: PathBuf,
+        error: std::io::Error,
     },
     #[error("{path}:{line}: {message}")]
     Syntax {

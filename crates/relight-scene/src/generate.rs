@@ -323,7 +323,7 @@ pub fn write_atrium(folder: &Path, target_triangles: usize) -> Result<PathBuf, S
 fn write_scene_files(folder: &Path, files: &[(&str, &String)]) -> Result<PathBuf, SceneError> {
     let io_error = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| SceneError::Io { path, source }
+        move |error| SceneError::Write { path, error }
     };
     std::fs::create_dir_all(folder).map_err(io_error(folder))?;
     for (name, text) in files {

@@ -28,7 +28,7 @@
 //!   normals. A transform with negative determinant mirrors the geometry, so
 //!   the winding is swapped to keep the front face counter-clockwise.
 
-use crate::scene_file::{decode_texture, warn, LoadedMesh};
+use crate::mesh_input::{decode_texture, warn, LoadedMesh};
 use crate::{Camera, Light, Material, Mesh, SceneError};
 use glam::{Mat4, Quat, Vec2, Vec3};
 use gltf::json;
@@ -42,9 +42,9 @@ const MIN_ROUGHNESS: f32 = 0.01;
 
 /// Reads a `.gltf` or `.glb` file with its buffers and images.
 pub(crate) fn load_gltf(path: &Path) -> Result<LoadedMesh, SceneError> {
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+    let bytes = std::fs::read(path).map_err(|error| SceneError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     let invalid = |message: String| SceneError::Invalid {
         path: path.to_path_buf(),
@@ -282,7 +282,7 @@ impl Loader<'_> {
                 Some(uri) => match self.resolve_uri(uri, &what)? {
                     UriTarget::Data(data) => data,
                     UriTarget::File(file) => std::fs::read(&file)
-                        .map_err(|source| SceneError::Io { path: file, source })?,
+                        .map_err(|error| SceneError::Io { path: file, error })?,
                 },
             };
             if data.len() < declared {
@@ -894,7 +894,7 @@ impl Loader<'_> {
         let width = match perspective.aspect_ratio {
             Some(aspect) if aspect.is_finite() && aspect > 0.0 => (aspect * height as f32)
                 .round()
-                .clamp(1.0, crate::scene_file::MAX_TEXTURE_SIDE as f32)
+                .clamp(1.0, crate::mesh_input::MAX_TEXTURE_SIDE as f32)
                 as u32,
             _ => height,
         };

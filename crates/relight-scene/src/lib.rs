@@ -17,6 +17,7 @@ pub mod detail;
 mod error;
 pub mod generate;
 mod gltf_loader;
+mod mesh_input;
 mod model;
 mod obj_loader;
 mod scene_file;

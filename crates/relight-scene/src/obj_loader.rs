@@ -16,7 +16,7 @@
 //! - `map_Kd` texels multiply `Kd`, as glTF's base colour texture multiplies
 //!   its factor, so both formats mean the same thing.
 
-use crate::scene_file::{decode_texture, text_from_bytes, warn, LoadedMesh};
+use crate::mesh_input::{decode_texture, text_from_bytes, warn, LoadedMesh};
 use crate::{Material, Mesh, SceneError, Texture};
 use glam::{Vec2, Vec3};
 use relight_core::colour::is_valid_radiometric;
@@ -26,9 +26,9 @@ use std::path::{Path, PathBuf};
 
 /// Reads an OBJ file with the MTL files and textures it names.
 pub(crate) fn load_obj(path: &Path) -> Result<LoadedMesh, SceneError> {
-    let bytes = std::fs::read(path).map_err(|source| SceneError::Io {
+    let bytes = std::fs::read(path).map_err(|error| SceneError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     let text = text_from_bytes(path, &bytes)?;
     let scan = validate_obj_text(path, &text)?;

@@ -104,9 +104,9 @@ pub fn write_bake_atomic(
     header: &BakeHeader,
     payload: &[u8],
 ) -> Result<(), TechniqueError> {
-    let io_error = |source| TechniqueError::Io {
+    let io_error = |error| TechniqueError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     };
     let file_name = path.file_name().ok_or_else(|| TechniqueError::BakeFile {
         path: path.to_path_buf(),
@@ -129,9 +129,9 @@ pub fn write_bake_atomic(
 
 /// Reads and verifies a bake file; returns its header and payload.
 pub fn read_bake(path: &Path) -> Result<(BakeHeader, Vec<u8>), TechniqueError> {
-    let bytes = std::fs::read(path).map_err(|source| TechniqueError::Io {
+    let bytes = std::fs::read(path).map_err(|error| TechniqueError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })?;
     decode(path, &bytes)
 }

@@ -47,8 +47,9 @@
 //! light (7.5-8.5 ms on two cores), and `final gather: sums`, the
 //! technique's value at each hit point plus the 11M to 13M (SRP 33M)
 //! scattered reads of the hits (LightSkin 6.9-9.7 ms, PRM 8.7-9.5, PIC
-//! 8.6-11.0 with its receiver values apart, SRP 18.5-20.6; the README's
-//! Frames section). That is the price of tracing the near field instead of
+//! 8.6-11.0 with its receiver values apart, SRP 18.5-20.6, on a day when
+//! the BVH traced about 25 Mrays/s; the guide's performance page has the
+//! current figures). That is the price of tracing the near field instead of
 //! interpolating it. What was measured and did not pay: points shared by
 //! 2 x 2 lightmap texels (half the hit points, 5 ms less a frame, but
 //! Sponza's corner receivers went from 16.3 to 26.8 % error and the

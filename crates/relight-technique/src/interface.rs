@@ -246,11 +246,12 @@ pub enum TechniqueError {
     Params(#[from] crate::ParamError),
     #[error("{path}: {message}")]
     BakeFile { path: PathBuf, message: String },
-    #[error("{path}: {source}")]
+    // The operating system's message is part of this one, not a source
+    // as well: a caller printing the chain would show it twice.
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{0}")]
     Other(String),

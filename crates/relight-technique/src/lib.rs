@@ -16,6 +16,59 @@
 //!
 //! The built-in kinds are `direct` (no indirect light, the lower bound) and
 //! `reference` (path-traced per-receiver indirect light, the ground truth).
+//! The four GI techniques live in crates of their own (`relight-prm`,
+//! `relight-srp`, `relight-pic`, `relight-lightskin`);
+//! `relight_engine::techniques::find` names every kind.
+//!
+//! # Using a technique
+//!
+//! Every kind is used the same way: build the context once, bake if the
+//! kind needs it (or read a bake file with [`read_bake`]), create, then
+//! update each frame with the lights as they are and read the light.
+//!
+//! ```
+//! use relight_technique::{
+//!     ContextSettings, Frame, NoProgress, ReferenceKind, SceneContext, TechniqueKind,
+//! };
+//! use std::sync::Arc;
+//!
+//! let file = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell-box/scene.toml");
+//! let scene = relight_scene::load_scene(std::path::Path::new(file))?;
+//! // The BVH, the lightmap atlas and its receivers, built once per scene.
+//! let context = Arc::new(SceneContext::new(scene, ContextSettings::default())?);
+//!
+//! // The path tracer at 4 paths a receiver: cheap, noisy, and used here
+//! // only because it needs no other crate.
+//! let kind: &dyn TechniqueKind = &ReferenceKind;
+//! let params = vec![("samples".to_string(), "4".to_string())];
+//! let bake = match kind.needs_bake() {
+//!     true => Some(kind.bake(&context, &params, &NoProgress)?),
+//!     false => None,
+//! };
+//! let mut technique = kind.create(context.clone(), bake.as_deref(), &params, &NoProgress)?;
+//!
+//! // Each frame: the lights where the application has moved them.
+//! let mut lights = context.scene.lights.clone();
+//! for index in 0..2 {
+//!     technique.update(&Frame {
+//!         lights: &lights,
+//!         index,
+//!         camera: None,
+//!         moving_mesh_poses: None,
+//!     })?;
+//!     // Indirect irradiance per lightmap receiver, in the atlas's order
+//!     // (`relight_engine::LightmapLayout` turns it into texels).
+//!     let irradiance = technique.receiver_irradiance().expect("a lightmap");
+//!     assert_eq!(irradiance.len(), context.atlas.receivers.len());
+//!     // Here they turn a quarter turn about the scene's middle.
+//!     let (low, high) = context.scene.content_bounds();
+//!     let turn = glam::Quat::from_rotation_y(std::f32::consts::FRAC_PI_2);
+//!     for light in &mut lights {
+//!         *light = light.rotated_about((low + high) * 0.5, turn);
+//!     }
+//! }
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
 
 mod bakefile;
 mod builtin;

@@ -308,9 +308,9 @@ pub fn write_variants(
         written.push((scene, variant));
     }
     let index_path = folder.join("variants.txt");
-    std::fs::write(&index_path, index_text).map_err(|source| SceneError::Io {
+    std::fs::write(&index_path, index_text).map_err(|error| SceneError::Write {
         path: index_path.clone(),
-        source,
+        error,
     })?;
     Ok(written)
 }
