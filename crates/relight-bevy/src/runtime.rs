@@ -80,8 +80,8 @@ pub struct RelightScene {
     /// Fewer leave the app's own threads cores of their own: on two
     /// cores, one worker thread runs its update as fast as `relight bench
     /// --threads 1` does while Bevy renders, where two share the cores
-    /// with Bevy's task pools and slow down by 7-30 % (see the guide's
-    /// Bevy page, docs/bevy.md).
+    /// with Bevy's task pools and slow down (see the guide's Bevy page,
+    /// docs/bevy.md).
     pub worker_threads: usize,
     /// Spawn the scene's lights as Bevy lights (with [`RelightLight`]).
     pub spawn_lights: bool,

@@ -118,8 +118,10 @@ pub enum Ktx2Error {
         expected: usize,
         actual: usize,
     },
+    // The cause is in the message, not a source as well (see
+    // `ExportError`).
     #[error("Zstandard compression failed: {0}")]
-    Compression(#[source] std::io::Error),
+    Compression(std::io::Error),
 }
 
 const IDENTIFIER: [u8; 12] = [

@@ -19,9 +19,10 @@
 //! turns away from its texel's receiver's (a moulding, a corner, a curved
 //! chart) or lies more than a texel from it gets a point of its own on
 //! that triangle, since the receiver's direct light is not the hit's
-//! (Sponza, LightSkin, `final_gather=inf`, 256 rays, on commit 485e425's
-//! receivers: corner receivers 16.1 -> 14.8 % per texel, 21 % more hit
-//! points; with today's receivers the class is at 11.7 %). Each frame it
+//! (Sponza, LightSkin, `final_gather=inf`, 256 rays, before receivers
+//! were relocated to the visible part of their texels: corner receivers
+//! 16.1 -> 14.8 % per texel, 21 % more hit points; with relocated
+//! receivers the class is at 11.7 %). Each frame it
 //! computes the direct light at every hit point once and replaces the gathering
 //! receiver's indirect light by the mean over its rays of the hit's albedo
 //! times its direct plus the technique's indirect light there. That is one
