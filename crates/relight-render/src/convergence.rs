@@ -586,27 +586,18 @@ pub fn measure_against_path_tracer(
     samples: u32,
     spp: u32,
 ) -> (Measurement, Noise) {
-    use std::collections::HashMap;
-    use std::sync::{Arc, Mutex, OnceLock};
-    type Shared = Arc<OnceLock<Arc<ReferenceSet>>>;
-    static REFERENCES: OnceLock<Mutex<HashMap<u64, Shared>>> = OnceLock::new();
+    static REFERENCES: relight_technique::robustness::OncePerProcess<u64, ReferenceSet> =
+        relight_technique::robustness::OncePerProcess::new();
     let split = Split::of(context);
     let settings = PathSettings {
         max_bounces: technique.reference_bounces(PathSettings::default().max_bounces),
         ..PathSettings::default()
     };
     let progress = relight_technique::NoProgress;
-    let slot = REFERENCES
-        .get_or_init(Default::default)
-        .lock()
-        // A test that panicked while holding the lock left the map whole.
-        .unwrap_or_else(|poisoned| poisoned.into_inner())
-        .entry(ReferenceSet::key(context, settings, samples, spp))
-        .or_default()
-        .clone();
-    let reference = slot.get_or_init(|| {
+    let key = ReferenceSet::key(context, settings, samples, spp);
+    let reference = REFERENCES.get_or_compute(key, || {
         let folder = std::env::var_os(TEST_REFERENCE_FOLDER).map(std::path::PathBuf::from);
-        Arc::new(ReferenceSet::cached(
+        ReferenceSet::cached(
             context,
             &split.space,
             settings,
@@ -614,9 +605,9 @@ pub fn measure_against_path_tracer(
             spp,
             folder.as_deref(),
             &progress,
-        ))
+        )
     });
-    let (measurement, _) = Measurement::of(context, technique, reference, &split, 4, &progress);
+    let (measurement, _) = Measurement::of(context, technique, &reference, &split, 4, &progress);
     (measurement, reference.noise(&split.visible))
 }
 

@@ -9,40 +9,67 @@ use std::collections::HashMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, Mutex, OnceLock};
 
+/// Values computed once per process for each key and shared, for tests
+/// that need the same costly result (a bake, a reference) several times.
+/// Callers asking for one key at once wait for one of them to compute it;
+/// different keys compute in parallel.
+pub struct OncePerProcess<K, V> {
+    slots: Mutex<Option<HashMap<K, Slot<V>>>>,
+}
+
+/// One key's value, filled by the first caller.
+type Slot<V> = Arc<OnceLock<Arc<V>>>;
+
+impl<K: std::hash::Hash + Eq, V> OncePerProcess<K, V> {
+    pub const fn new() -> Self {
+        Self {
+            slots: Mutex::new(None),
+        }
+    }
+
+    /// The value for `key`, computed by `compute` if no caller has yet.
+    pub fn get_or_compute(&self, key: K, compute: impl FnOnce() -> V) -> Arc<V> {
+        let slot = self
+            .slots
+            .lock()
+            // A test that panicked while holding the lock left the map whole.
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+            .get_or_insert_with(HashMap::new)
+            .entry(key)
+            .or_default()
+            .clone();
+        slot.get_or_init(|| Arc::new(compute())).clone()
+    }
+}
+
+impl<K: std::hash::Hash + Eq, V> Default for OncePerProcess<K, V> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
 /// `kind`'s bake of `context` with `params`, made once per process for each
 /// technique, scene fingerprint ([`SceneContext::fingerprint`]) and
 /// parameter list, and shared: a bake does not depend on the lights or the
 /// camera, so tests that measure one bake under several lights or at
-/// several image sizes need not bake it again. Tests asking for the same
-/// bake at once wait for one of them to make it. Panics if the bake fails.
+/// several image sizes need not bake it again. Panics if the bake fails.
 pub fn shared_bake(
     kind: &dyn TechniqueKind,
     context: &SceneContext,
     params: &[(String, String)],
 ) -> Arc<Vec<u8>> {
-    type Key = (String, u64, Vec<(String, String)>);
-    type Slot = Arc<OnceLock<Arc<Vec<u8>>>>;
-    static BAKES: OnceLock<Mutex<HashMap<Key, Slot>>> = OnceLock::new();
+    /// Technique, scene fingerprint, parameters.
+    type BakeKey = (String, u64, Vec<(String, String)>);
+    static BAKES: OncePerProcess<BakeKey, Vec<u8>> = OncePerProcess::new();
     let key = (
         kind.name().to_string(),
         context.fingerprint(),
         params.to_vec(),
     );
-    let slot = {
-        // A test that panicked while holding the lock left the map whole.
-        let mut bakes = BAKES
-            .get_or_init(Default::default)
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
-        bakes.entry(key).or_default().clone()
-    };
-    slot.get_or_init(|| {
-        Arc::new(
-            kind.bake(context, params, &NoProgress)
-                .unwrap_or_else(|error| panic!("{} bakes: {error}", kind.name())),
-        )
+    BAKES.get_or_compute(key, || {
+        kind.bake(context, params, &NoProgress)
+            .unwrap_or_else(|error| panic!("{} bakes: {error}", kind.name()))
     })
-    .clone()
 }
 
 /// Loads `mutations` copies of `payload`, each with one to four random bit
