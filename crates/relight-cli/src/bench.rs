@@ -29,6 +29,11 @@ pub struct BenchReport {
     pub frames: u32,
     pub threads: usize,
     pub receivers: usize,
+    /// The first update, which settles every bounce of feedback techniques
+    /// (PIC, SRP) at once; not in the medians.
+    pub first_update_ms: f64,
+    /// Feedback passes the first update ran (0: the technique has none).
+    pub first_update_passes: u32,
     pub stages: Vec<StageReport>,
     pub total: StageReport,
     /// Indirect light (diffuse, plus glossy where the material and the
@@ -175,6 +180,7 @@ pub fn run(
         (volume_cells > 0).then(|| relight_engine::VolumeGrid::covering(lo, hi, volume_cells));
     let mut volume_texels = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
     let mut volume_samples = Vec::new();
+    let mut first_update = (0.0, 0);
     progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
         let lights = relight_engine::orbit(base, centre, index, frames);
@@ -188,10 +194,13 @@ pub fn run(
             moving_mesh_poses: None,
         })?;
         progress.advance(1);
+        let timings = technique.timings();
+        if index == 0 {
+            first_update = (timings.total().as_secs_f64() * 1e3, timings.feedback_passes);
+        }
         if index < WARM_UP_FRAMES {
             continue;
         }
-        let timings = technique.timings();
         for (stage, duration) in &timings.stages {
             let slot = match stage_names.iter().position(|name| name == stage) {
                 Some(slot) => slot,
@@ -235,6 +244,8 @@ pub fn run(
         frames,
         threads: rayon::current_num_threads(),
         receivers: context.atlas.receivers.len(),
+        first_update_ms: first_update.0,
+        first_update_passes: first_update.1,
         stages: stage_names
             .iter()
             .zip(stage_samples)
@@ -271,6 +282,15 @@ impl fmt::Display for BenchReport {
             f,
             "{} on {}: {} frames, {} threads, {} receivers",
             self.technique, self.scene, self.frames, self.threads, self.receivers
+        )?;
+        let passes = match self.first_update_passes {
+            0 => String::new(),
+            passes => format!(", {passes} feedback passes"),
+        };
+        writeln!(
+            f,
+            "first update {:.1} ms{passes} (it settles the light; not in the medians)",
+            self.first_update_ms
         )?;
         writeln!(f, "{:<28} {:>12} {:>12}", "stage", "median ms", "p95 ms")?;
         for stage in self.stages.iter().chain(std::iter::once(&self.total)) {

@@ -9,8 +9,8 @@ use relight_core::{sh, Rgb};
 use relight_scene::atlas::{Atlas, TexelDensity};
 use relight_scene::Light;
 use relight_technique::{
-    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
-    SurfaceGather, SurfacePoint, Technique, TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
+    StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use std::f32::consts::PI;
 use std::sync::Arc;
@@ -1014,11 +1014,13 @@ impl Technique for Pic {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
-        let passes = if self.updates == 0 {
+        // The first update runs bounces until they settle; later frames
+        // add one bounce each on top of the last.
+        let mut settling = SettlingPasses::new(if self.updates == 0 {
             self.settings.bounces
         } else {
             1
-        };
+        });
         let feedback = self.settings.bounces > 1;
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
@@ -1032,7 +1034,7 @@ impl Technique for Pic {
         let start = Instant::now();
         self.final_gather.light_hits(&self.context, &self.lights);
         let mut gather_time = start.elapsed();
-        for pass in 0..passes {
+        for pass in 0.. {
             let start = Instant::now();
             self.light_surfels(feedback && (pass > 0 || self.updates > 0));
             surfel_time += start.elapsed();
@@ -1042,7 +1044,14 @@ impl Technique for Pic {
             let start = Instant::now();
             self.light_caches();
             cache_time += start.elapsed();
-            if feedback && pass + 1 < passes && !self.final_gather.is_empty() {
+            // The pulled root holds every surfel's reflected flux: its
+            // luma grows by the bounce each pass adds.
+            let root = self.bake.hierarchy.root() as usize;
+            let root_luma = || self.flux.get(root).map_or(0.0, |flux| f64::from(flux.x));
+            if !settling.another_pass(root_luma) {
+                break;
+            }
+            if feedback && !self.final_gather.is_empty() {
                 // The next pass's surfels read this pass's near field.
                 let start = Instant::now();
                 self.look_up_receivers();
@@ -1065,6 +1074,7 @@ impl Technique for Pic {
         self.final_gather.apply(&mut self.receiver_values);
         receiver_time += start.elapsed();
         self.timings.clear();
+        self.timings.feedback_passes = settling.passes();
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
         self.timings.stages.push(("cache lighting", cache_time));

@@ -11,8 +11,8 @@ use rayon::prelude::*;
 use relight_core::{sh, Rgb, Rgb9e5};
 use relight_scene::Light;
 use relight_technique::{
-    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
-    SurfaceGather, SurfacePoint, Technique, TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
+    StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
@@ -785,6 +785,22 @@ fn texel_slots(context: &SceneContext, slot_of_receiver: &[u32], missing: u32) -
         .collect()
 }
 
+/// The summed luminance of `values`, in the same order on any thread
+/// count, so the settling passes stop at the same pass.
+fn luminance_total(values: &[Rgb]) -> f64 {
+    values
+        .par_chunks(8192)
+        .map(|chunk| {
+            chunk
+                .iter()
+                .map(|&value| f64::from(relight_core::luminance(value)))
+                .sum::<f64>()
+        })
+        .collect::<Vec<f64>>()
+        .into_iter()
+        .sum()
+}
+
 impl Technique for Srp {
     fn name(&self) -> &'static str {
         "srp"
@@ -803,26 +819,29 @@ impl Technique for Srp {
             self.select_probes();
             self.direct_light(frame);
         });
-        // The first update runs every bounce, so a single frame is settled;
-        // later frames add one bounce each on top of the last.
-        let passes = if self.updates == 0 {
-            self.settings.bounces.max(1)
+        // The first update runs bounces until they settle, so a single
+        // frame is settled; later frames add one bounce each on top of the
+        // last.
+        let mut settling = SettlingPasses::new(if self.updates == 0 {
+            self.settings.bounces
         } else {
             1
-        };
-        for pass in 0..passes {
-            if pass > 0 {
-                self.needed.clear();
-                self.needed
-                    .extend(0..self.bake.visible_receivers.len() as u32);
-            }
+        });
+        loop {
             timings.time("probe projection", || {
                 self.texel_radiance();
                 self.project_probes();
             });
             timings.time("cluster projection", || self.project_clusters());
             timings.time("reconstruction", || self.reconstruct());
+            if !settling.another_pass(|| luminance_total(&self.visible_indirect)) {
+                break;
+            }
+            self.needed.clear();
+            self.needed
+                .extend(0..self.bake.visible_receivers.len() as u32);
         }
+        timings.feedback_passes = settling.passes();
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }

@@ -39,11 +39,15 @@ pub struct Frame<'a> {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct StageTimings {
     pub stages: Vec<(&'static str, Duration)>,
+    /// Feedback passes the update ran (each adds a bounce); 0 for a
+    /// technique without feedback.
+    pub feedback_passes: u32,
 }
 
 impl StageTimings {
     pub fn clear(&mut self) {
         self.stages.clear();
+        self.feedback_passes = 0;
     }
 
     /// Runs `work`, records its duration under `stage`, returns its result.

@@ -80,6 +80,7 @@ mod interface;
 mod params;
 mod payload;
 pub mod robustness;
+mod settling;
 mod shard;
 
 pub use bakefile::{
@@ -98,6 +99,7 @@ pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
+pub use settling::{SettlingPasses, SETTLED_SHARE};
 pub use shard::{
     join_parts, parameters_fingerprint, read_shard_set, shards_disagree, BakePart, Shard, ShardSet,
 };

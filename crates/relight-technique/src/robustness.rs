@@ -3,8 +3,9 @@
 //! any input file"), sharded bakes that must merge to the whole, and bakes
 //! made once per test process.
 
-use crate::{Frame, NoProgress, SceneContext, TechniqueKind};
+use crate::{Frame, NoProgress, SceneContext, Technique, TechniqueKind};
 use relight_core::sampling::Pcg32;
+use relight_scene::Light;
 use std::collections::HashMap;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -70,6 +71,54 @@ pub fn shared_bake(
         kind.bake(context, params, &NoProgress)
             .unwrap_or_else(|error| panic!("{} bakes: {error}", kind.name()))
     })
+}
+
+/// A closed room whose every surface reflects `albedo` (grey), with four
+/// boxes on its floor
+/// ([`relight_scene::generate::room_with_objects_on_its_floor_obj`]) and a
+/// point light under its ceiling: nearly all light stays in, so at albedo
+/// 0.9 most of it arrives after many bounces.
+pub fn closed_grey_room(albedo: f32) -> Arc<SceneContext> {
+    let (obj, _) = relight_scene::generate::room_with_objects_on_its_floor_obj();
+    let tail =
+        "[[lights]]\nkind = \"point\"\nposition = [0.3, 2.2, -0.4]\nintensity = [2.0, 2.0, 2.0]\n";
+    let mut scene = relight_scene::generate::load_obj_scene(&obj, tail)
+        .unwrap_or_else(|error| panic!("the generated room loads: {error}"));
+    for material in &mut scene.materials {
+        material.albedo = relight_core::Rgb::splat(albedo);
+    }
+    Arc::new(
+        SceneContext::new(scene, crate::ContextSettings::default())
+            .unwrap_or_else(|error| panic!("the generated room's context: {error}")),
+    )
+}
+
+/// The summed luminance of `technique`'s lightmap after the update it has
+/// had, over the same after `more` further updates under `lights`: 1 when
+/// that update had already settled every bounce, less when feedback
+/// passes were still adding light. Panics if the technique keeps no
+/// lightmap or an update fails.
+pub fn settled_share(technique: &mut dyn Technique, lights: &[Light], more: u32) -> f64 {
+    let total = |technique: &dyn Technique| -> f64 {
+        technique
+            .receiver_irradiance()
+            .expect("the technique keeps a lightmap")
+            .iter()
+            .map(|&value| f64::from(relight_core::luminance(value)))
+            .sum()
+    };
+    let first = total(technique);
+    for index in 1..=more {
+        technique
+            .update(&Frame {
+                lights,
+                index: u64::from(index),
+                camera: None,
+                moving_mesh_poses: None,
+            })
+            .unwrap_or_else(|error| panic!("update {index}: {error}"));
+    }
+    first / total(technique)
 }
 
 /// Loads `mutations` copies of `payload`, each with one to four random bit
