@@ -1044,11 +1044,20 @@ impl Technique for Pic {
             let start = Instant::now();
             self.light_caches();
             cache_time += start.elapsed();
-            // The pulled root holds every surfel's reflected flux: its
-            // luma grows by the bounce each pass adds.
-            let root = self.bake.hierarchy.root() as usize;
-            let root_luma = || self.flux.get(root).map_or(0.0, |flux| f64::from(flux.x));
-            if !settling.another_pass(root_luma) {
+            // The caches' summed luma (their constant SH term) grows by the
+            // bounce each pass adds. The hierarchy's root flux would not
+            // do: it holds the directly lit surfels' reflection too, which
+            // under a sun is so much larger than the indirect light that
+            // it hides how much the passes still add.
+            let stride = self.stride;
+            let cache_luma = || {
+                self.cache_sh
+                    .iter()
+                    .step_by(stride)
+                    .map(|&luma| f64::from(luma))
+                    .sum::<f64>()
+            };
+            if !settling.another_pass(cache_luma) {
                 break;
             }
             if feedback && !self.final_gather.is_empty() {
