@@ -47,7 +47,7 @@
 //! | `node_samples` | 16 | surfel samples per node while choosing links |
 //! | `link_samples` | 32 | surfel samples per link factor |
 //! | `leak_refinement` | 1 | extra refinement priority of partly hidden nodes |
-//! | `bounces` | 128 | 1 = single bounce; more = last frame's caches light the surfels, and the first update runs passes until they settle (the rest of the bounce series under 0.5 % of the light, [`relight_technique::SettlingPasses`]), at most this many |
+//! | `bounces` | 128 | 1 = single bounce; more = last frame's caches light the surfels, and the first update runs passes until they settle (the rest of each cache's bounce series under 0.5 % of its light in root mean square, [`relight_technique::SettlingPasses`]), at most this many |
 //! | `area_lights` | `links` | `links`: emissive surfels send their light through the links (the paper); `direct`: the direct-light service lights surfels from emissive triangles too |
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent |
 //! | `space` | `gather` | points in space: `gather` the light leaving the surfaces around them over `space_rays` fixed rays, or read the `grid` caches (the paper; cheaper, but it leaks through walls) |

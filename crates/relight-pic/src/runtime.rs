@@ -1044,20 +1044,12 @@ impl Technique for Pic {
             let start = Instant::now();
             self.light_caches();
             cache_time += start.elapsed();
-            // The caches' summed luma (their constant SH term) grows by the
-            // bounce each pass adds. The hierarchy's root flux would not
-            // do: it holds the directly lit surfels' reflection too, which
-            // under a sun is so much larger than the indirect light that
-            // it hides how much the passes still add.
-            let stride = self.stride;
-            let cache_luma = || {
-                self.cache_sh
-                    .iter()
-                    .step_by(stride)
-                    .map(|&luma| f64::from(luma))
-                    .sum::<f64>()
-            };
-            if !settling.another_pass(cache_luma) {
+            // Each cache's luma (its constant SH term) grows by the bounce
+            // each pass adds.
+            let (cache_sh, stride) = (&self.cache_sh, self.stride);
+            let measure =
+                |values: &mut Vec<f32>| values.extend(cache_sh.iter().step_by(stride).copied());
+            if !settling.another_pass(measure) {
                 break;
             }
             if feedback && !self.final_gather.is_empty() {

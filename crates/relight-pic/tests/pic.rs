@@ -679,11 +679,12 @@ fn later_bounces_keep_the_near_field() {
 /// In a closed grey room of albedo 0.9 most light arrives after many
 /// bounces, and each feedback pass adds one. The first update must run
 /// passes until the light they would still add is under
-/// [`relight_technique::SETTLED_SHARE`] (0.5 %): its lightmap is within
+/// [`relight_technique::SETTLED_SHARE`] (0.5 % relative, root mean square
+/// over its elements): its lightmap is within
 /// 1 % of what 300 more updates under the same lights reach (the 1 % allows
 /// the ratio's estimate from two passes; the tail after 300 more passes is
 /// below 1e-6 at this albedo), and it stops on its own before the 128-pass
-/// cap. Measured: 43 passes, 0.995. A fixed 16 passes gave 0.863 here,
+/// cap. Measured: 44 passes, 0.996. A fixed 16 passes gave 0.863 here,
 /// and PIC `high` 0.818x of the path tracer's light in a 4 x 2.6 x 5 m
 /// grey room of albedo 0.9 (`relight converge`).
 #[test]

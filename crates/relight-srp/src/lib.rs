@@ -117,8 +117,9 @@
 //!   lights higher bounces lag by a frame each. `bounces` cannot stop the
 //!   feedback at an exact count without a lightmap per bounce, so it caps
 //!   the passes of the first update and switches feedback off at 1. The
-//!   first update stops once the rest of the bounce series, estimated from
-//!   the last two passes' added light, is under 0.5 % of the light
+//!   first update stops once the rest of each probe-visible texel's
+//!   bounce series, estimated from its last two passes' added light, is
+//!   under 0.5 % of its light in root mean square
 //!   ([`relight_technique::SettlingPasses`]): a fixed 16 passes cut it
 //!   short in bright closed rooms (a grey room of albedo 0.9: 0.895x the
 //!   path tracer's indirect light, 10.4 % over 8x8 tiles; settled, 1.002x

@@ -785,22 +785,6 @@ fn texel_slots(context: &SceneContext, slot_of_receiver: &[u32], missing: u32) -
         .collect()
 }
 
-/// The summed luminance of `values`, in the same order on any thread
-/// count, so the settling passes stop at the same pass.
-fn luminance_total(values: &[Rgb]) -> f64 {
-    values
-        .par_chunks(8192)
-        .map(|chunk| {
-            chunk
-                .iter()
-                .map(|&value| f64::from(relight_core::luminance(value)))
-                .sum::<f64>()
-        })
-        .collect::<Vec<f64>>()
-        .into_iter()
-        .sum()
-}
-
 impl Technique for Srp {
     fn name(&self) -> &'static str {
         "srp"
@@ -834,7 +818,11 @@ impl Technique for Srp {
             });
             timings.time("cluster projection", || self.project_clusters());
             timings.time("reconstruction", || self.reconstruct());
-            if !settling.another_pass(|| luminance_total(&self.visible_indirect)) {
+            let indirect = &self.visible_indirect;
+            let measure = |values: &mut Vec<f32>| {
+                values.extend(indirect.iter().map(|&value| relight_core::luminance(value)))
+            };
+            if !settling.another_pass(measure) {
                 break;
             }
             self.needed.clear();

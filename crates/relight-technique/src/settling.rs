@@ -1,10 +1,22 @@
 //! How many feedback passes an update that settles the light runs.
 
-/// The share of the total light the passes not run may leave out.
-pub const SETTLED_SHARE: f64 = 0.005;
+/// The relative error the passes not run may leave, as the root mean
+/// square over the elements a technique measures (caches, texels) of each
+/// one's estimated remaining light over its light.
+pub const SETTLED_SHARE: f32 = 0.005;
 
-/// Decides when the feedback passes of a settling update (the first one,
-/// or one whose lights just changed) may stop.
+/// Elements darker than this share of the mean take no part: their
+/// relative change says nothing anyone sees.
+const DARK_SHARE: f32 = 1e-3;
+
+/// The highest ratio of one pass's added light to the last's that is taken
+/// as falling; an element whose light is not falling yet (a room lit only
+/// through a doorway, whose bounces arrive a pass late) counts as if its
+/// series fell this slowly.
+const SLOWEST_RATIO: f32 = 0.99;
+
+/// Decides when the feedback passes of a settling update (the first one)
+/// may stop.
 ///
 /// A technique that feeds its last pass's indirect light back (PIC, SRP)
 /// adds one bounce a pass, and the light each pass adds falls
@@ -12,16 +24,22 @@ pub const SETTLED_SHARE: f64 = 0.005;
 /// surface reflects reaches other surfaces rather than leaving. A fixed
 /// count of passes cuts that series where a bright closed interior still
 /// has much to add: 16 passes in a closed grey room of albedo 0.9 gave SRP
-/// 0.895x and PIC `high` 0.818x of the path tracer's indirect light. Here
-/// the ratio is estimated from the last two passes' added light, and the
-/// passes stop once the rest of the series, `added * ratio / (1 - ratio)`,
-/// is under [`SETTLED_SHARE`] of the total, or at `most` passes.
-#[derive(Clone, Debug)]
+/// 0.895x and PIC `high` 0.818x of the path tracer's indirect light.
+///
+/// Each element's ratio is estimated from its last two passes' added
+/// light, and its remaining light as `added * ratio / (1 - ratio)`; the
+/// passes stop once the root mean square of remaining over present light
+/// is under [`SETTLED_SHARE`], or at `most` passes. Per element, not over
+/// the total: a room lit through a doorway holds a small part of the light
+/// and gets its bounces late, so a criterion on the total stopped PIC
+/// while that room was still 1 % darker than where it was going.
+#[derive(Clone, Debug, Default)]
 pub struct SettlingPasses {
     most: u32,
     passes: u32,
-    total: Option<f64>,
-    added: Option<f64>,
+    last: Vec<f32>,
+    last_added: Vec<f32>,
+    current: Vec<f32>,
 }
 
 impl SettlingPasses {
@@ -29,46 +47,58 @@ impl SettlingPasses {
     pub fn new(most: u32) -> Self {
         Self {
             most: most.max(1),
-            passes: 0,
-            total: None,
-            added: None,
+            ..Self::default()
         }
     }
 
     /// Records a finished pass and says whether another is worth running.
-    /// `total` measures the light after it (anything linear in the light:
-    /// a luminance sum, a total flux); it is not called when the passes are
-    /// at their limit anyway.
-    pub fn another_pass(&mut self, total: impl FnOnce() -> f64) -> bool {
+    /// `measure` fills the light of each element after it (a luminance:
+    /// anything linear in the light), in the same order every pass; it is
+    /// not called when the passes are at their limit anyway.
+    pub fn another_pass(&mut self, measure: impl FnOnce(&mut Vec<f32>)) -> bool {
         self.passes += 1;
         if self.passes >= self.most {
             return false;
         }
-        let total = total();
-        if !total.is_finite() {
-            return false;
-        }
-        let Some(last_total) = self.total.replace(total) else {
-            return true;
-        };
-        let added = total - last_total;
-        let last_added = self.added.replace(added);
-        if added.abs() <= SETTLED_SHARE * 1e-3 * total.abs() {
-            return false;
-        }
-        let Some(last_added) = last_added else {
-            return true;
-        };
-        if last_added <= 0.0 || added < 0.0 {
-            // Not yet a falling series (a near field that changes the
-            // first passes); keep going until it is.
+        self.current.clear();
+        measure(&mut self.current);
+        let current = &self.current;
+        if self.last.len() != current.len() {
+            // The first pass (or a measure that changed its length).
+            self.last.clone_from(current);
+            self.last_added.clear();
             return true;
         }
-        let ratio = added / last_added;
-        if ratio >= 1.0 {
-            return true;
+        // After the second pass no ratio is known yet: every element
+        // counts as falling at the slowest ratio, so only a scene with no
+        // light added stops there.
+        self.last_added.resize(current.len(), 0.0);
+        let mean = current.iter().map(|&value| f64::from(value)).sum::<f64>()
+            / current.len().max(1) as f64;
+        let floor = (DARK_SHARE as f64 * mean) as f32;
+        let (mut squares, mut counted) = (0.0f64, 0usize);
+        for ((&value, last), last_added) in current
+            .iter()
+            .zip(self.last.iter_mut())
+            .zip(self.last_added.iter_mut())
+        {
+            let added = value - *last;
+            if value > floor && value.is_finite() && added > 0.0 {
+                let ratio = if *last_added > 0.0 {
+                    (added / *last_added).min(SLOWEST_RATIO)
+                } else {
+                    SLOWEST_RATIO
+                };
+                let remaining = added * ratio / (1.0 - ratio);
+                squares += f64::from(remaining / value).powi(2);
+            }
+            counted += usize::from(value > floor);
+            *last = value;
+            *last_added = added;
         }
-        added * ratio / (1.0 - ratio) > SETTLED_SHARE * total
+        // A NaN (never expected) keeps the passes going, up to `most`.
+        let spread = (squares / counted.max(1) as f64).sqrt();
+        counted > 0 && (spread.is_nan() || spread > f64::from(SETTLED_SHARE))
     }
 
     /// Passes recorded so far.
@@ -81,51 +111,84 @@ impl SettlingPasses {
 mod tests {
     use super::*;
 
-    /// A geometric series of ratio r: the passes stop when the tail
-    /// r^n / (1 - r) * (1 - r) = r^n of the sum is under the share, that
-    /// is after ceil(ln(share) / ln(r)) passes (plus one for the first
-    /// pass, whose added light is not known until the second).
+    fn run(
+        settling: &mut SettlingPasses,
+        mut light_after: impl FnMut(u32) -> Vec<f32>,
+    ) -> Vec<f32> {
+        let mut pass = 0;
+        loop {
+            let light = light_after(pass);
+            pass += 1;
+            if !settling.another_pass(|values| values.extend_from_slice(&light)) {
+                return light;
+            }
+        }
+    }
+
+    /// Geometric series of ratio r: the passes stop when every element's
+    /// tail is under the share, so each is within it of its limit 1/(1-r),
+    /// and no more than one pass after that point (plus one: the first
+    /// pass's added light is not known until the second).
     #[test]
     fn passes_stop_where_the_rest_of_a_geometric_series_is_small() {
-        for ratio in [0.3f64, 0.6, 0.9, 0.97] {
+        for ratio in [0.3f32, 0.6, 0.9, 0.97] {
             let mut settling = SettlingPasses::new(10_000);
-            let (mut total, mut bounce) = (0.0, 1.0);
-            loop {
-                total += bounce;
-                bounce *= ratio;
-                if !settling.another_pass(|| total) {
-                    break;
-                }
-            }
+            let series = |pass: u32| {
+                let sum = (1.0 - ratio.powi(pass as i32 + 1)) / (1.0 - ratio);
+                vec![sum, 2.0 * sum, 0.5 * sum]
+            };
+            let light = run(&mut settling, series);
             let limit = 1.0 / (1.0 - ratio);
-            let left = (limit - total) / limit;
-            assert!(left <= SETTLED_SHARE * 1.0001, "ratio {ratio}: {left} left");
-            // No more than one pass past the point where the rest is under
-            // the share.
+            let left = (limit - light[0]) / limit;
+            assert!(left <= SETTLED_SHARE * 1.01, "ratio {ratio}: {left} left");
             let needed = (SETTLED_SHARE.ln() / ratio.ln()).ceil() as u32;
             assert!(
-                settling.passes() <= needed + 1,
-                "ratio {ratio}: {} passes",
+                settling.passes() <= needed + 2,
+                "ratio {ratio}: {} passes, {needed} needed",
                 settling.passes()
             );
         }
     }
 
+    /// A bright element that settles at once beside a dim one whose light
+    /// arrives a pass later and falls slowly (a room lit through a
+    /// doorway): the dim one decides.
+    #[test]
+    fn a_dim_element_whose_light_comes_late_keeps_the_passes_going() {
+        let mut settling = SettlingPasses::new(10_000);
+        let (fast, slow) = (0.2f32, 0.8f32);
+        let light = run(&mut settling, |pass| {
+            let bright = (1.0 - fast.powi(pass as i32 + 1)) / (1.0 - fast);
+            let dim = if pass == 0 {
+                0.0
+            } else {
+                0.01 * (1.0 - slow.powi(pass as i32)) / (1.0 - slow)
+            };
+            vec![bright, dim]
+        });
+        let dim_limit = 0.01 / (1.0 - slow);
+        assert!(
+            (dim_limit - light[1]) / dim_limit < 2.0 * SETTLED_SHARE,
+            "dim element at {} of {dim_limit}",
+            light[1]
+        );
+    }
+
     #[test]
     fn the_most_passes_and_a_dark_scene_stop_it() {
         let mut settling = SettlingPasses::new(3);
-        assert!(settling.another_pass(|| 1.0));
-        assert!(settling.another_pass(|| 1.99));
-        assert!(!settling.another_pass(|| 2.97));
-        // No light at all: nothing to add after the second pass.
+        assert!(settling.another_pass(|values| values.push(1.0)));
+        assert!(settling.another_pass(|values| values.push(1.99)));
+        assert!(!settling.another_pass(|values| values.push(2.97)));
+        // No light at all: nothing to wait for after the second pass.
         let mut settling = SettlingPasses::new(100);
-        assert!(settling.another_pass(|| 0.0));
-        assert!(!settling.another_pass(|| 0.0));
+        assert!(settling.another_pass(|values| values.push(0.0)));
+        assert!(!settling.another_pass(|values| values.push(0.0)));
         // A growing series runs to the limit.
         let mut settling = SettlingPasses::new(20);
-        let mut runs = 1;
         let mut total = 1.0;
-        while settling.another_pass(|| total) {
+        let mut runs = 1;
+        while settling.another_pass(|values| values.push(total)) {
             total *= 2.0;
             runs += 1;
         }
