@@ -93,6 +93,28 @@ pub fn closed_grey_room(albedo: f32) -> Arc<SceneContext> {
     )
 }
 
+/// Checks a feedback technique's first update in [`closed_grey_room`]
+/// (`context`) at albedo 0.9, where most light arrives after many bounces:
+/// its feedback passes must stop on their own, after more than the old
+/// fixed 16 and before `cap`, and its lightmap must be within 1 % of what
+/// 300 more updates under the same lights reach (the rest of the series
+/// after 300 more passes is below 1e-6 at this albedo). Panics otherwise;
+/// returns the passes and that share.
+pub fn check_first_update_settles(
+    technique: &mut dyn Technique,
+    context: &SceneContext,
+    cap: u32,
+) -> (u32, f64) {
+    let passes = technique.timings().feedback_passes;
+    assert!((17..cap).contains(&passes), "{passes} passes");
+    let share = settled_share(technique, &context.scene.lights, 300);
+    assert!(
+        (0.99..=1.01).contains(&share),
+        "{share} after {passes} passes"
+    );
+    (passes, share)
+}
+
 /// The summed luminance of `technique`'s lightmap after the update it has
 /// had, over the same after `more` further updates under `lights`: 1 when
 /// that update had already settled every bounce, less when feedback
