@@ -285,11 +285,11 @@ impl fmt::Display for BenchReport {
         )?;
         let passes = match self.first_update_passes {
             0 => String::new(),
-            passes => format!(", {passes} feedback passes"),
+            passes => format!(", {passes} feedback passes (it settles the bounces)"),
         };
         writeln!(
             f,
-            "first update {:.1} ms{passes} (it settles the light; not in the medians)",
+            "first update {:.1} ms{passes}; not in the medians",
             self.first_update_ms
         )?;
         writeln!(f, "{:<28} {:>12} {:>12}", "stage", "median ms", "p95 ms")?;

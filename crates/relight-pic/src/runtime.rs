@@ -1075,7 +1075,9 @@ impl Technique for Pic {
         self.final_gather.apply(&mut self.receiver_values);
         receiver_time += start.elapsed();
         self.timings.clear();
-        self.timings.feedback_passes = settling.passes();
+        if feedback {
+            self.timings.feedback_passes = settling.passes();
+        }
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
         self.timings.stages.push(("cache lighting", cache_time));

@@ -829,7 +829,9 @@ impl Technique for Srp {
             self.needed
                 .extend(0..self.bake.visible_receivers.len() as u32);
         }
-        timings.feedback_passes = settling.passes();
+        if self.settings.bounces > 1 {
+            timings.feedback_passes = settling.passes();
+        }
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }

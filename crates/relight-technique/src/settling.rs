@@ -12,7 +12,9 @@ const DARK_SHARE: f32 = 1e-3;
 /// The highest ratio of one pass's added light to the last's that is taken
 /// as falling; an element whose light is not falling yet (a room lit only
 /// through a doorway, whose bounces arrive a pass late) counts as if its
-/// series fell this slowly.
+/// series fell this slowly. A series that truly falls slower has its rest
+/// underestimated, but would need more than 500 passes to settle, past
+/// any sensible `most`.
 const SLOWEST_RATIO: f32 = 0.99;
 
 /// Decides when the feedback passes of a settling update (the first one)
@@ -70,12 +72,18 @@ impl SettlingPasses {
             return true;
         }
         // After the second pass no ratio is known yet: every element
-        // counts as falling at the slowest ratio, so only a scene with no
-        // light added stops there.
+        // counts as falling at the slowest ratio, which stops the passes
+        // only where the light added is nearly nothing.
         self.last_added.resize(current.len(), 0.0);
-        let mean = current.iter().map(|&value| f64::from(value)).sum::<f64>()
-            / current.len().max(1) as f64;
-        let floor = (DARK_SHARE as f64 * mean) as f32;
+        // Non-finite values (a technique's fault, never expected) take no
+        // part, so they neither stop the passes nor hold them to `most`.
+        let (sum, finite) = current
+            .iter()
+            .filter(|value| value.is_finite())
+            .fold((0.0f64, 0usize), |(sum, count), &value| {
+                (sum + f64::from(value), count + 1)
+            });
+        let floor = (DARK_SHARE as f64 * sum / finite.max(1) as f64) as f32;
         let (mut squares, mut counted) = (0.0f64, 0usize);
         for ((&value, last), last_added) in current
             .iter()
@@ -83,7 +91,8 @@ impl SettlingPasses {
             .zip(self.last_added.iter_mut())
         {
             let added = value - *last;
-            if value > floor && value.is_finite() && added > 0.0 {
+            let counts = value.is_finite() && added.is_finite() && value > floor;
+            if counts && added > 0.0 {
                 let ratio = if *last_added > 0.0 {
                     (added / *last_added).min(SLOWEST_RATIO)
                 } else {
@@ -92,13 +101,11 @@ impl SettlingPasses {
                 let remaining = added * ratio / (1.0 - ratio);
                 squares += f64::from(remaining / value).powi(2);
             }
-            counted += usize::from(value > floor);
+            counted += usize::from(counts);
             *last = value;
             *last_added = added;
         }
-        // A NaN (never expected) keeps the passes going, up to `most`.
-        let spread = (squares / counted.max(1) as f64).sqrt();
-        counted > 0 && (spread.is_nan() || spread > f64::from(SETTLED_SHARE))
+        counted > 0 && (squares / counted as f64).sqrt() > f64::from(SETTLED_SHARE)
     }
 
     /// Passes recorded so far.
@@ -172,6 +179,20 @@ mod tests {
             "dim element at {} of {dim_limit}",
             light[1]
         );
+    }
+
+    /// A non-finite element (a technique's fault) neither stops the passes
+    /// nor holds them to the limit: the others decide alone.
+    #[test]
+    fn non_finite_elements_take_no_part() {
+        let series = |pass: u32| (1.0 - 0.6f32.powi(pass as i32 + 1)) / 0.4;
+        let mut clean = SettlingPasses::new(1000);
+        run(&mut clean, |pass| vec![series(pass)]);
+        for odd in [f32::NAN, f32::INFINITY] {
+            let mut spoilt = SettlingPasses::new(1000);
+            run(&mut spoilt, |pass| vec![odd, series(pass)]);
+            assert_eq!(spoilt.passes(), clean.passes(), "{odd}");
+        }
     }
 
     #[test]
