@@ -1014,13 +1014,7 @@ impl Technique for Pic {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
-        // The first update runs bounces until they settle; later frames
-        // add one bounce each on top of the last.
-        let mut settling = SettlingPasses::new(if self.updates == 0 {
-            self.settings.bounces
-        } else {
-            1
-        });
+        let mut settling = SettlingPasses::for_update(self.settings.bounces, self.updates == 0);
         let feedback = self.settings.bounces > 1;
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
@@ -1075,9 +1069,7 @@ impl Technique for Pic {
         self.final_gather.apply(&mut self.receiver_values);
         receiver_time += start.elapsed();
         self.timings.clear();
-        if feedback {
-            self.timings.feedback_passes = settling.passes();
-        }
+        self.timings.feedback_passes = settling.feedback_passes();
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
         self.timings.stages.push(("cache lighting", cache_time));

@@ -803,14 +803,7 @@ impl Technique for Srp {
             self.select_probes();
             self.direct_light(frame);
         });
-        // The first update runs bounces until they settle, so a single
-        // frame is settled; later frames add one bounce each on top of the
-        // last.
-        let mut settling = SettlingPasses::new(if self.updates == 0 {
-            self.settings.bounces
-        } else {
-            1
-        });
+        let mut settling = SettlingPasses::for_update(self.settings.bounces, self.updates == 0);
         loop {
             timings.time("probe projection", || {
                 self.texel_radiance();
@@ -829,9 +822,7 @@ impl Technique for Srp {
             self.needed
                 .extend(0..self.bake.visible_receivers.len() as u32);
         }
-        if self.settings.bounces > 1 {
-            timings.feedback_passes = settling.passes();
-        }
+        timings.feedback_passes = settling.feedback_passes();
         if self.bake.radiance.bands > 0 {
             timings.time("radiance transport", || self.transport_radiance());
         }

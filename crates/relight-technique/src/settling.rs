@@ -39,14 +39,26 @@ const SLOWEST_RATIO: f32 = 0.99;
 pub struct SettlingPasses {
     most: u32,
     passes: u32,
+    feedback: bool,
     last: Vec<f32>,
     last_added: Vec<f32>,
     current: Vec<f32>,
 }
 
 impl SettlingPasses {
+    /// The passes of one update of a technique whose `bounces` parameter
+    /// caps them: the first update (`first`) runs until the bounces settle,
+    /// a later one adds one bounce on top of the last, and `bounces = 1`
+    /// turns feedback off.
+    pub fn for_update(bounces: u32, first: bool) -> Self {
+        Self {
+            feedback: bounces > 1,
+            ..Self::new(if first { bounces } else { 1 })
+        }
+    }
+
     /// At most `most` passes (at least one runs).
-    pub fn new(most: u32) -> Self {
+    fn new(most: u32) -> Self {
         Self {
             most: most.max(1),
             ..Self::default()
@@ -111,6 +123,16 @@ impl SettlingPasses {
     /// Passes recorded so far.
     pub fn passes(&self) -> u32 {
         self.passes
+    }
+
+    /// What [`crate::StageTimings::feedback_passes`] reports: the passes,
+    /// or 0 without feedback.
+    pub fn feedback_passes(&self) -> u32 {
+        if self.feedback {
+            self.passes
+        } else {
+            0
+        }
     }
 }
 
