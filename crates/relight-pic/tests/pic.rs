@@ -661,8 +661,10 @@ fn receivers_do_not_blend_caches_beyond_a_wall() {
 /// (`relight converge scenes/two-rooms/scene-unlit-room.toml -t pic
 /// --preset high`), 0.952x and 3.9 % with them. Here, at half size:
 /// 0.923x and 6.19 % without, 0.950x and 4.01 % with (reference noise
-/// over tiles 0.86 %); the bounds sit between the two, the light ratio's
-/// noise over a whole image at 256 paths being well under 1 %.
+/// over tiles 0.86 %), and 0.948x and 4.1 % once partly hidden nodes were
+/// refined first (`leak_refinement` 16); the bounds sit between the two,
+/// the light ratio's noise over a whole image at 256 paths being well
+/// under 1 %.
 #[test]
 fn later_bounces_keep_the_near_field() {
     let measured = relight_render::convergence::unlit_room_measurement(|context| {
@@ -688,4 +690,63 @@ fn the_first_update_settles_the_bounces_of_a_bright_closed_room() {
     let context = relight_technique::robustness::closed_grey_room(0.9);
     let mut technique = pic(&context, &[]);
     relight_technique::robustness::check_first_update_settles(technique.as_mut(), &context, 128);
+}
+
+/// Two rooms joined by a doorway, seen from the unlit room, as the
+/// generator models them (variants 55 and 64 of the default family: a box
+/// per room with a doorway, and one shell; a point light 0.27 m from a
+/// corner and 0.11 m from a wall of the lit room). The unlit room's
+/// caches see the lit room only through the doorway, as small parts of
+/// large nodes whose flux comes mostly from surfels they cannot see; links
+/// to such nodes spread that flux by the node's mean factor, and came out
+/// as bright blotches on the unlit room's walls (64) or too little light
+/// (55). Refining partly hidden nodes first (`leak_refinement`) puts the
+/// links where the doorway is. Measured at the study's settings (half the
+/// variants' camera, 256 paths, as `relight robustness -t pic --preset
+/// high --first 55 --variants 1`): 55 gave 9.3 % over 8x8 tiles and
+/// 0.821x the light in view, 64 19.8 % and 0.878x with `leak_refinement`
+/// 1, and 7.0 %, 0.924x and 6.1 %, 0.959x at 16. The bounds are the
+/// issue's (8 % on rooms, 0.85-1.15x in an unlit room); the references'
+/// own tile noise is 1.9 and 3.3 %.
+#[test]
+fn generated_suites_light_their_unlit_room_through_the_doorway() {
+    use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
+    for index in [55, 64] {
+        let suite = variant(VARIANTS_DEFAULT_SEED, index);
+        assert_eq!(suite.kind, VariantKind::TwoRooms, "{}", suite.name());
+        let folder =
+            std::env::temp_dir().join(format!("relight-pic-suite-{index}-{}", std::process::id()));
+        let case = relight_render::robustness::VariantCase::load(
+            suite,
+            &folder,
+            2,
+            ContextSettings::default(),
+        )
+        .expect("the variant loads");
+        let _ = std::fs::remove_dir_all(&folder);
+        let technique = pic(&case.context, &[("preset", "high")]);
+        let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
+            &case.context,
+            technique.as_ref(),
+            256,
+            256,
+        );
+        println!(
+            "variant {index}: 8x8 tiles {:.1} % (reference noise {:.1} %), light in view {:.3}x",
+            measured.image_tiles * 100.0,
+            noise.image_tiles * 100.0,
+            measured.light_ratio
+        );
+        assert!(noise.image_tiles < 0.04, "{}", noise.image_tiles);
+        assert!(
+            (0.85..=1.15).contains(&measured.light_ratio),
+            "variant {index}: {}",
+            measured.light_ratio
+        );
+        assert!(
+            measured.image_tiles < 0.08,
+            "variant {index}: {}",
+            measured.image_tiles
+        );
+    }
 }
