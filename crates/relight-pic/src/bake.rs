@@ -2,7 +2,7 @@
 
 use crate::caches::{cache_atlas, place_caches, CachePlacement, GridLayout};
 use crate::hierarchy::{self, ClusterMetric, Hierarchy};
-use crate::links::{LinkForm, LinkSettings, Senders};
+use crate::links::{hemisphere_scale, LinkForm, LinkSettings, Senders};
 use crate::surfels::{place_surfels, Surfels};
 use crate::PicParams;
 use glam::{Vec2, Vec3};
@@ -198,8 +198,9 @@ impl PicPart {
                 let nodes = senders.cut(cache as u64, position, normal, &settings);
                 let mut runtime = Vec::new();
                 let mut projected = vec![0.0f32; nodes.len() * coefficient_count];
+                let mut solid_angles = Vec::with_capacity(nodes.len());
                 for (slot, &node) in nodes.iter().enumerate() {
-                    match form {
+                    let solid_angle = match form {
                         LinkForm::Runtime => {
                             let link = senders.runtime_link(
                                 cache as u64,
@@ -209,6 +210,7 @@ impl PicPart {
                                 &settings,
                             );
                             runtime.push((link.factor, link.one_minus_cos, link.direction));
+                            link.solid_angle
                         }
                         LinkForm::Projected { bands } => senders.projected_link(
                             cache as u64,
@@ -220,7 +222,15 @@ impl PicPart {
                             &mut projected
                                 [slot * coefficient_count..(slot + 1) * coefficient_count],
                         ),
-                    }
+                    };
+                    solid_angles.push(solid_angle);
+                }
+                let scale = hemisphere_scale(normal, solid_angles);
+                if scale < 1.0 {
+                    runtime
+                        .iter_mut()
+                        .for_each(|(factor, _, _)| *factor *= scale);
+                    projected.iter_mut().for_each(|value| *value *= scale);
                 }
                 let largest = projected.iter().fold(0.0f32, |m, c| m.max(c.abs()));
                 let exponent = scale_exponent(largest);

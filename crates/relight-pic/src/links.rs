@@ -55,6 +55,37 @@ pub struct RuntimeLink {
     /// 1 - cos(alpha) of the cone.
     pub one_minus_cos: f32,
     pub direction: Vec3,
+    /// The node's visible solid angle, which the factor folds in: what
+    /// [`hemisphere_scale`] sums over a cache's links.
+    pub solid_angle: f32,
+}
+
+/// How far a cache's links may sum past what it can see before they are
+/// scaled back: the sampled solid angles of a closed box's caches sum to
+/// up to 1.02 of the hemisphere at the 99.9th percentile (two-rooms: 1.3),
+/// which is the link samples' noise, not overlap, and scaling that back
+/// would darken every cache whose noise went up.
+pub const OVERLAP_ALLOWANCE: f32 = 1.1;
+
+/// The factor that brings a cache's links within what it can see: the
+/// hemisphere around `normal` (the whole sphere for a grid cache, whose
+/// normal is zero). Each surfel sample counts as a disc of up to 2 pi at
+/// contact, so the discs around a cache standing where two surfaces meet
+/// overlap and can claim many hemispheres together; scaling a sum beyond
+/// [`OVERLAP_ALLOWANCE`] back to the most any cache can see keeps such a
+/// cache from shining many times brighter than anything it links to.
+pub fn hemisphere_scale(normal: Vec3, solid_angles: impl IntoIterator<Item = f32>) -> f32 {
+    let visible = if normal == Vec3::ZERO {
+        4.0 * PI
+    } else {
+        2.0 * PI
+    };
+    let total: f32 = solid_angles.into_iter().sum();
+    if total > visible * OVERLAP_ALLOWANCE {
+        visible / total
+    } else {
+        1.0
+    }
 }
 
 /// The scene as link generation samples it.
@@ -274,11 +305,13 @@ impl Senders<'_> {
             factor: estimate.solid_angle / (cone * PI * leaves),
             one_minus_cos,
             direction: estimate.direction_sum.normalize_or_zero(),
+            solid_angle: estimate.solid_angle,
         }
     }
 
     /// SH-projected link to `node` (Appendix A), each sample projected as
-    /// the small cone of its disc rather than a single direction.
+    /// the small cone of its disc rather than a single direction; returns
+    /// the node's visible solid angle.
     #[allow(clippy::too_many_arguments)]
     pub fn projected_link(
         &self,
@@ -289,14 +322,14 @@ impl Senders<'_> {
         bands: usize,
         settings: &LinkSettings,
         coefficients: &mut [f32],
-    ) {
+    ) -> f32 {
         let origin = position + normal * self.epsilon;
         let mut rng = SampleStream::new(settings.seed, cache, 0x1000_0000 + node as u64);
         coefficients.fill(0.0);
         let mut basis = [0.0f32; 64];
         let leaves = self.hierarchy.leaves[node as usize] as f32;
         let folded = 1.0 / (PI * leaves);
-        self.estimate(
+        let estimate = self.estimate(
             origin,
             normal,
             node,
@@ -319,5 +352,24 @@ impl Senders<'_> {
                 }
             },
         );
+        estimate.solid_angle
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn links_are_scaled_back_to_what_the_cache_sees() {
+        let up = Vec3::Y;
+        assert_eq!(hemisphere_scale(up, [PI, 0.5 * PI]), 1.0);
+        // Within the sampling noise's allowance: left alone.
+        assert_eq!(hemisphere_scale(up, [PI, 1.05 * PI]), 1.0);
+        assert!((hemisphere_scale(up, [PI, PI, PI]) - 2.0 / 3.0).abs() < 1e-6);
+        // A grid cache sees the whole sphere.
+        assert_eq!(hemisphere_scale(Vec3::ZERO, [PI, PI, PI]), 1.0);
+        assert!((hemisphere_scale(Vec3::ZERO, [4.0 * PI; 2]) - 0.5).abs() < 1e-6);
+        assert_eq!(hemisphere_scale(up, []), 1.0);
     }
 }

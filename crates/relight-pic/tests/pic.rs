@@ -750,3 +750,44 @@ fn generated_suites_light_their_unlit_room_through_the_doorway() {
         );
     }
 }
+
+/// No cache links more solid angle than it can see. Each surfel sample is
+/// a disc of up to 2 pi at contact, so the discs around a cache where two
+/// surfaces meet overlap: on two-rooms a cache at the foot of the dividing
+/// wall linked 8.7 hemispheres with PIC high and 19.3 at the defaults
+/// (this test's bake), and one on a narrow face of the classroom 13.4
+/// (PIC high), which lit its texels 300 times brighter than the path
+/// tracer. The bake scales such a cache's links back to its hemisphere
+/// once they sum past [`relight_pic::links::OVERLAP_ALLOWANCE`] of it,
+/// which the bound allows, with a little for the f16 factors and cones.
+#[test]
+fn no_cache_links_more_than_its_hemisphere() {
+    let context = context("two-rooms");
+    let payload = relight_technique::robustness::shared_bake(&PicKind, &context, &[]);
+    let bake = PicBake::decode(&payload).expect("the bake decodes");
+    assert_eq!(bake.projected_bands, 0, "the default links carry factors");
+    let unhalf = |bits: u16| half::f16::from_bits(bits).to_f32();
+    let mut widest = 0.0f32;
+    for cache in 0..bake.caches.positions.len() {
+        let links = cache * bake.links_per_cache..(cache + 1) * bake.links_per_cache;
+        let solid_angle: f32 = links
+            .map(|link| {
+                let factor = unhalf(bake.link_factors[link]) / bake.factor_scale;
+                let cone = 2.0 * std::f32::consts::PI * unhalf(bake.link_cones[link]);
+                let leaves = bake.hierarchy.leaves[bake.link_nodes[link] as usize] as f32;
+                factor * cone * std::f32::consts::PI * leaves
+            })
+            .sum();
+        let visible = if bake.caches.normals[cache] == Vec3::ZERO {
+            4.0 * std::f32::consts::PI
+        } else {
+            2.0 * std::f32::consts::PI
+        };
+        widest = widest.max(solid_angle / visible);
+    }
+    println!("widest cache: {widest:.3} of what it can see");
+    assert!(
+        widest < relight_pic::links::OVERLAP_ALLOWANCE + 0.01,
+        "{widest}"
+    );
+}
