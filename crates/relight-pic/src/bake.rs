@@ -13,7 +13,10 @@ use relight_technique::{
     SceneContext, Shard, TechniqueError,
 };
 
-const PAYLOAD_VERSION: u32 = 2;
+// 3: links cut with partly hidden nodes first and scaled back to the
+// cache's hemisphere; a version-2 bake holds other links for the same
+// parameters.
+const PAYLOAD_VERSION: u32 = 3;
 
 /// Links are padded to a multiple of this per cache (the kernel's lanes).
 pub const LINK_ALIGNMENT: usize = crate::kernels::LANES;
@@ -89,7 +92,7 @@ pub struct PicPart {
 }
 
 /// Shard payloads carry their own version beside the bake's.
-const PART_VERSION: u32 = 1;
+const PART_VERSION: u32 = 2;
 
 /// Link slots per cache: `links` rounded up to the kernel's lanes, and no
 /// more than a cut of the hierarchy can hold (one node per surfel).

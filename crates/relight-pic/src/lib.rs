@@ -46,7 +46,7 @@
 //! | `grid` | `[0, 0, 0]` | explicit grid dimensions |
 //! | `node_samples` | 16 | surfel samples per node while choosing links |
 //! | `link_samples` | 32 | surfel samples per link factor |
-//! | `leak_refinement` | 16 | how much sooner partly hidden nodes are refined: a node's priority is its visible solid angle times 1 + this times the share of its samples the cache cannot see (0 = the paper's solid angle alone) |
+//! | `leak_refinement` | 16 | how much sooner partly hidden nodes are refined: a node's priority is its visible solid angle times 1 + this times the share of its samples the cache cannot see (hidden, facing away or below its horizon; 0 = the paper's solid angle alone) |
 //! | `bounces` | 128 | 1 = single bounce; more = last frame's caches light the surfels, and the first update runs passes until they settle (the rest of each cache's bounce series under 0.5 % of its light in root mean square, [`relight_technique::SettlingPasses`]), at most this many |
 //! | `area_lights` | `links` | `links`: emissive surfels send their light through the links (the paper); `direct`: the direct-light service lights surfels from emissive triangles too |
 //! | `specular` | 0 | specular reflectance of materials with a Phong exponent |
@@ -70,9 +70,10 @@
 //! - A surfel sample is a disc: solid angle a cos / (d^2 + a / (2 pi)),
 //!   which is a / d^2 far away and the disc's 2 pi at contact, instead of
 //!   the paper's unbounded a cos / d^2. The discs around a cache where
-//!   two surfaces meet still overlap: such caches linked up to 13-19
-//!   hemispheres (two-rooms, the classroom), and one lit its texels 300
-//!   times brighter than the path tracer. A cache whose links' solid
+//!   two surfaces meet still overlap: such caches linked up to 19
+//!   hemispheres (two-rooms at the defaults) and 13 (the classroom at
+//!   `high`), where one lit its texels 300 times brighter than the path
+//!   tracer. A cache whose links' solid
 //!   angles sum to more than 1.1 hemispheres (a grid cache: spheres),
 //!   beyond what the link samples' noise gives, has them scaled back to
 //!   one.
@@ -92,12 +93,15 @@
 //!   variants`: 19.8 % over 8x8 tiles) or too little light (variant 55:
 //!   0.821x). Refining the partly hidden nodes first cures both (6.1 %,
 //!   0.924x at 16) and also helps where nothing is that visibly wrong:
-//!   Sponza (sun) tiles 11.5 -> 9.9 %, its point light 16.0 -> 15.3 %
+//!   Sponza (sun) tiles 11.5 -> 10.0 %, its point light 16.0 -> 15.4 %
 //!   (`relight converge SCENE -t pic --preset high --sweep
 //!   leak_refinement=1,16,64`). 64 was better still on the two-room suites
 //!   and the living room, worse on Sponza and on rooms and halls at the
-//!   90th percentile of `relight robustness`. The link count, and so the
-//!   frame's cost, does not change.
+//!   90th percentile of `relight robustness`. It costs elsewhere: the
+//!   classroom's tiles went 29.5 -> 31.9 % (a blotch on the ceiling by
+//!   its windows grew; why is not known) and the atrium's light 0.945 ->
+//!   0.928x. The link
+//!   count, and so the frame's cost, does not change.
 //! - Sponza's 4666 lightmap charts do not fit a 128 x 128 atlas, so its
 //!   cache atlas is as coarse as gives about `lightmap_caches` texels.
 //! - A lightmap cache whose texel point is buried (a column shaft running

@@ -754,40 +754,55 @@ fn generated_suites_light_their_unlit_room_through_the_doorway() {
 /// No cache links more solid angle than it can see. Each surfel sample is
 /// a disc of up to 2 pi at contact, so the discs around a cache where two
 /// surfaces meet overlap: on two-rooms a cache at the foot of the dividing
-/// wall linked 8.7 hemispheres with PIC high and 19.3 at the defaults
-/// (this test's bake), and one on a narrow face of the classroom 13.4
-/// (PIC high), which lit its texels 300 times brighter than the path
-/// tracer. The bake scales such a cache's links back to its hemisphere
-/// once they sum past [`relight_pic::links::OVERLAP_ALLOWANCE`] of it,
-/// which the bound allows, with a little for the f16 factors and cones.
+/// wall linked 19.3 hemispheres at the defaults and 8.7 with PIC high, and
+/// one on a narrow face of the classroom 13.4 (PIC high), which lit its
+/// texels 300 times brighter than the path tracer. The bake scales such a
+/// cache's links back to its hemisphere once they sum past
+/// [`relight_pic::links::OVERLAP_ALLOWANCE`] of it, which the bound
+/// allows, with a little for the f16 values. Both link forms: factors
+/// (the defaults) and SH coefficients (`high`), whose constant term is the
+/// solid angle times Y00 / (pi * leaves).
 #[test]
 fn no_cache_links_more_than_its_hemisphere() {
+    use std::f32::consts::PI;
     let context = context("two-rooms");
-    let payload = relight_technique::robustness::shared_bake(&PicKind, &context, &[]);
-    let bake = PicBake::decode(&payload).expect("the bake decodes");
-    assert_eq!(bake.projected_bands, 0, "the default links carry factors");
     let unhalf = |bits: u16| half::f16::from_bits(bits).to_f32();
-    let mut widest = 0.0f32;
-    for cache in 0..bake.caches.positions.len() {
-        let links = cache * bake.links_per_cache..(cache + 1) * bake.links_per_cache;
-        let solid_angle: f32 = links
-            .map(|link| {
-                let factor = unhalf(bake.link_factors[link]) / bake.factor_scale;
-                let cone = 2.0 * std::f32::consts::PI * unhalf(bake.link_cones[link]);
-                let leaves = bake.hierarchy.leaves[bake.link_nodes[link] as usize] as f32;
-                factor * cone * std::f32::consts::PI * leaves
-            })
-            .sum();
-        let visible = if bake.caches.normals[cache] == Vec3::ZERO {
-            4.0 * std::f32::consts::PI
-        } else {
-            2.0 * std::f32::consts::PI
-        };
-        widest = widest.max(solid_angle / visible);
+    for params in [vec![], vec![("preset", "high")]] {
+        let payload =
+            relight_technique::robustness::shared_bake(&PicKind, &context, &pairs(&params));
+        let bake = PicBake::decode(&payload).expect("the bake decodes");
+        let coefficients = bake.projected_bands * bake.projected_bands;
+        let mut widest = 0.0f32;
+        for cache in 0..bake.caches.positions.len() {
+            let links = cache * bake.links_per_cache..(cache + 1) * bake.links_per_cache;
+            let solid_angle: f32 = links
+                .map(|link| {
+                    let leaves = bake.hierarchy.leaves[bake.link_nodes[link] as usize] as f32;
+                    if coefficients == 0 {
+                        let factor = unhalf(bake.link_factors[link]) / bake.factor_scale;
+                        let cone = 2.0 * PI * unhalf(bake.link_cones[link]);
+                        factor * cone * PI * leaves
+                    } else {
+                        let constant =
+                            unhalf(bake.link_coefficients[link * coefficients]) / bake.factor_scale;
+                        // Y00 = 1 / (2 sqrt(pi)).
+                        constant * PI * leaves * 2.0 * PI.sqrt()
+                    }
+                })
+                .sum();
+            let visible = if bake.caches.normals[cache] == Vec3::ZERO {
+                4.0 * PI
+            } else {
+                2.0 * PI
+            };
+            widest = widest.max(solid_angle / visible);
+        }
+        println!("{params:?}: widest cache {widest:.3} of what it can see");
+        // Some cache sees nearly all of its hemisphere: the sums are real.
+        assert!(widest > 0.9, "{params:?}: {widest}");
+        assert!(
+            widest < relight_pic::links::OVERLAP_ALLOWANCE + 0.01,
+            "{params:?}: {widest}"
+        );
     }
-    println!("widest cache: {widest:.3} of what it can see");
-    assert!(
-        widest < relight_pic::links::OVERLAP_ALLOWANCE + 0.01,
-        "{widest}"
-    );
 }
