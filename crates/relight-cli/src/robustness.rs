@@ -120,21 +120,15 @@ pub fn run(
         if !quiet {
             eprintln!("== {name}: {}", generated.description());
         }
-        // The loader reads files: a variant not kept is written to the
-        // temporary folder and removed once loaded.
-        let folder = match &settings.keep {
-            Some(keep) => keep.join(&name),
-            None => std::env::temp_dir().join(format!(
-                "relight-variant-{}-{}-{name}",
-                std::process::id(),
-                settings.seed
-            )),
+        let loaded = match &settings.keep {
+            Some(keep) => VariantCase::load(
+                generated,
+                &keep.join(&name),
+                settings.shrink,
+                context_settings,
+            ),
+            None => VariantCase::load_temporary(generated, settings.shrink, context_settings),
         };
-        let loaded = VariantCase::load(generated, &folder, settings.shrink, context_settings);
-        if settings.keep.is_none() {
-            // Left behind, it costs only disk space.
-            let _ = std::fs::remove_dir_all(&folder);
-        }
         let case = loaded.with_context(|| format!("variant {name} (seed {})", settings.seed))?;
         let context = &case.context;
         let start = Instant::now();

@@ -1160,12 +1160,12 @@ fn a_hall_whose_walls_run_out_into_the_sun_gets_the_light_of_one_bounce() {
     use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
     let hall = variant(VARIANTS_DEFAULT_SEED, 8);
     assert_eq!(hall.kind, VariantKind::Hall, "{}", hall.name());
-    let folder =
-        std::env::temp_dir().join(format!("relight-lightskin-hall-{}", std::process::id()));
-    let case =
-        relight_render::robustness::VariantCase::load(hall, &folder, 4, ContextSettings::default())
-            .expect("the variant loads");
-    let _ = std::fs::remove_dir_all(&folder);
+    let case = relight_render::robustness::VariantCase::load_temporary(
+        hall,
+        4,
+        ContextSettings::default(),
+    )
+    .expect("the variant loads");
     let context = case.context;
     let lights = context.scene.lights.clone();
     let technique = updated(&context, LightSkinParams::default());

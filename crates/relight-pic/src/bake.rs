@@ -201,9 +201,9 @@ impl PicPart {
                 let nodes = senders.cut(cache as u64, position, normal, &settings);
                 let mut runtime = Vec::new();
                 let mut projected = vec![0.0f32; nodes.len() * coefficient_count];
-                let mut solid_angles = Vec::with_capacity(nodes.len());
+                let mut linked = 0.0f32;
                 for (slot, &node) in nodes.iter().enumerate() {
-                    let solid_angle = match form {
+                    linked += match form {
                         LinkForm::Runtime => {
                             let link = senders.runtime_link(
                                 cache as u64,
@@ -226,9 +226,8 @@ impl PicPart {
                                 [slot * coefficient_count..(slot + 1) * coefficient_count],
                         ),
                     };
-                    solid_angles.push(solid_angle);
                 }
-                let scale = hemisphere_scale(normal, solid_angles);
+                let scale = hemisphere_scale(normal, linked);
                 if scale < 1.0 {
                     runtime
                         .iter_mut()

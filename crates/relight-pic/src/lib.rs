@@ -73,10 +73,9 @@
 //!   two surfaces meet still overlap: such caches linked up to 19
 //!   hemispheres (two-rooms at the defaults) and 13 (the classroom at
 //!   `high`), where one lit its texels 300 times brighter than the path
-//!   tracer. A cache whose links' solid
-//!   angles sum to more than 1.1 hemispheres (a grid cache: spheres),
-//!   beyond what the link samples' noise gives, has them scaled back to
-//!   one.
+//!   tracer. A cache whose links' solid angles sum to more than 1.1
+//!   hemispheres (a grid cache: spheres), beyond what the link samples'
+//!   noise gives, has them scaled back to one.
 //! - Runtime-projection cones match the samples' mean resultant length, so
 //!   bands 0 and 1 of each link are those of its samples.
 //! - Clusters whose representative surfels cannot see each other pay
@@ -100,8 +99,7 @@
 //!   90th percentile of `relight robustness`. It costs elsewhere: the
 //!   classroom's tiles went 29.5 -> 31.9 % (a blotch on the ceiling by
 //!   its windows grew; why is not known) and the atrium's light 0.945 ->
-//!   0.928x. The link
-//!   count, and so the frame's cost, does not change.
+//!   0.928x. The link count, and so the frame's cost, does not change.
 //! - Sponza's 4666 lightmap charts do not fit a 128 x 128 atlas, so its
 //!   cache atlas is as coarse as gives about `lightmap_caches` texels.
 //! - A lightmap cache whose texel point is buried (a column shaft running

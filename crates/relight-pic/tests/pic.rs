@@ -714,16 +714,12 @@ fn generated_suites_light_their_unlit_room_through_the_doorway() {
     for index in [55, 64] {
         let suite = variant(VARIANTS_DEFAULT_SEED, index);
         assert_eq!(suite.kind, VariantKind::TwoRooms, "{}", suite.name());
-        let folder =
-            std::env::temp_dir().join(format!("relight-pic-suite-{index}-{}", std::process::id()));
-        let case = relight_render::robustness::VariantCase::load(
+        let case = relight_render::robustness::VariantCase::load_temporary(
             suite,
-            &folder,
             2,
             ContextSettings::default(),
         )
         .expect("the variant loads");
-        let _ = std::fs::remove_dir_all(&folder);
         let technique = pic(&case.context, &[("preset", "high")]);
         let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
             &case.context,
@@ -790,11 +786,7 @@ fn no_cache_links_more_than_its_hemisphere() {
                     }
                 })
                 .sum();
-            let visible = if bake.caches.normals[cache] == Vec3::ZERO {
-                4.0 * PI
-            } else {
-                2.0 * PI
-            };
+            let visible = relight_pic::links::visible_solid_angle(bake.caches.normals[cache]);
             widest = widest.max(solid_angle / visible);
         }
         println!("{params:?}: widest cache {widest:.3} of what it can see");

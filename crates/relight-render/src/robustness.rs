@@ -21,6 +21,7 @@ use relight_technique::{ContextSettings, SceneContext};
 use relight_trace::bvh::Ray;
 use relight_trace::path::CameraRays;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 /// One generated variant, loaded.
@@ -52,6 +53,28 @@ impl VariantCase {
             context,
             contact_tiles,
         })
+    }
+
+    /// [`Self::load`] through a folder of its own in the system's temporary
+    /// folder, removed once the variant is loaded: the loader reads files,
+    /// and a caller that keeps none needs no folder.
+    pub fn load_temporary(
+        variant: Variant,
+        shrink: u32,
+        settings: ContextSettings,
+    ) -> Result<Self, SceneError> {
+        // Tests load variants on several threads of one process.
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        let folder = std::env::temp_dir().join(format!(
+            "relight-variant-{}-{}-{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed),
+            variant.name()
+        ));
+        let loaded = Self::load(variant, &folder, shrink, settings);
+        // Left behind, it costs only disk space.
+        let _ = std::fs::remove_dir_all(&folder);
+        loaded
     }
 }
 
