@@ -2,7 +2,9 @@
 
 use crate::caches::{cache_atlas, place_caches, CachePlacement, GridLayout};
 use crate::hierarchy::{self, ClusterMetric, Hierarchy};
-use crate::links::{hemisphere_scale, LinkForm, LinkSettings, Senders};
+use crate::links::{
+    hemisphere_scale, visible_solid_angle, LinkForm, LinkSettings, Senders, OVERLAP_ALLOWANCE,
+};
 use crate::surfels::{place_surfels, Surfels};
 use crate::PicParams;
 use glam::{Vec2, Vec3};
@@ -189,9 +191,10 @@ impl PicPart {
         } else {
             (0..own_caches.len()).map(|_| Default::default()).collect()
         };
-        // Per cache: nodes, (factor, 1 - cos, direction), and the scale
-        // exponent and largest magnitude of its coefficients.
-        type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, i32, f32);
+        // Per cache: nodes, (factor, 1 - cos, direction), the scale
+        // exponent and largest magnitude of its coefficients, and its links'
+        // solid angle over what it can see before any scaling back.
+        type CacheLinks = (Vec<u32>, Vec<(f32, f32, Vec3)>, i32, f32, f32);
         let per_cache: Vec<CacheLinks> = coefficient_chunks
             .into_par_iter()
             .zip(own_caches.clone())
@@ -240,7 +243,13 @@ impl PicPart {
                     stored[slot] = half::f16::from_f32(value * 2f32.powi(exponent)).to_bits();
                 }
                 progress.advance(1);
-                (nodes, runtime, exponent, largest)
+                (
+                    nodes,
+                    runtime,
+                    exponent,
+                    largest,
+                    linked / visible_solid_angle(normal),
+                )
             })
             .collect();
         progress.finish();
@@ -264,7 +273,8 @@ impl PicPart {
             largest: Vec::with_capacity(per_cache.len()),
             coefficients,
         };
-        for (nodes, runtime, exponent, largest) in per_cache {
+        log_overlap(per_cache.iter().map(|cache| cache.4));
+        for (nodes, runtime, exponent, largest, _) in per_cache {
             part.nodes.push(nodes);
             part.runtime.push(runtime);
             part.exponents.push(exponent);
@@ -776,6 +786,26 @@ fn read_setup(
         grid_culled: counts[3] as usize,
     };
     Ok((surfels, hierarchy, cache_atlas_metres, caches))
+}
+
+/// Says (at `RELIGHT_LOG=info`) how far the caches' links sum past what
+/// each can see, before scaling back: what [`OVERLAP_ALLOWANCE`] is set
+/// against, and how many caches it catches.
+fn log_overlap(ratios: impl Iterator<Item = f32>) {
+    let mut ratios: Vec<f32> = ratios.collect();
+    if ratios.is_empty() {
+        return;
+    }
+    ratios.sort_unstable_by(f32::total_cmp);
+    let at = |share: f64| ratios[((ratios.len() - 1) as f64 * share) as usize];
+    let scaled = ratios.iter().filter(|&&r| r > OVERLAP_ALLOWANCE).count();
+    tracing::info!(
+        "pic links: {} caches' solid angle over what each sees: {:.2} at the 99th percentile, {:.2} at the 99.9th, {:.2} at most; {scaled} over {OVERLAP_ALLOWANCE} scaled back to 1",
+        ratios.len(),
+        at(0.99),
+        at(0.999),
+        ratios[ratios.len() - 1],
+    );
 }
 
 /// Occlusion rays per link, over `link_samples + node_samples`: a link's
