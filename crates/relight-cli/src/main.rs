@@ -912,6 +912,12 @@ fn info(path: &Path, options: &SceneOptions, bake: Option<&Path>, quiet: bool) -
         }
     );
     say!("texel size      {:.4} m", atlas.metres_per_texel);
+    if atlas.near_light_charts > 0 {
+        say!(
+            "near lights     {} charts get finer texels (lightmap.refine_near_lights)",
+            atlas.near_light_charts
+        );
+    }
     say!("receivers       {}", atlas.receivers.len());
     say!("coverage        {:.1} %", atlas.coverage() * 100.0);
     if atlas.filled_texels() > 0 {

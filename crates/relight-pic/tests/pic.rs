@@ -710,29 +710,18 @@ fn the_first_update_settles_the_bounces_of_a_bright_closed_room() {
 /// own tile noise is 1.9 and 3.3 %.
 #[test]
 fn generated_suites_light_their_unlit_room_through_the_doorway() {
-    use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
+    use relight_scene::generate::variants::VariantKind;
     for index in [55, 64] {
-        let suite = variant(VARIANTS_DEFAULT_SEED, index);
-        assert_eq!(suite.kind, VariantKind::TwoRooms, "{}", suite.name());
-        let case = relight_render::robustness::VariantCase::load_temporary(
-            suite,
-            2,
-            ContextSettings::default(),
-        )
-        .expect("the variant loads");
+        let case = relight_render::robustness::VariantCase::default_family(index)
+            .expect("the variant loads");
+        assert_eq!(
+            case.variant.kind,
+            VariantKind::TwoRooms,
+            "{}",
+            case.variant.name()
+        );
         let technique = pic(&case.context, &[("preset", "high")]);
-        let (measured, noise) = relight_render::convergence::measure_against_path_tracer(
-            &case.context,
-            technique.as_ref(),
-            256,
-            256,
-        );
-        println!(
-            "variant {index}: 8x8 tiles {:.1} % (reference noise {:.1} %), light in view {:.3}x",
-            measured.image_tiles * 100.0,
-            noise.image_tiles * 100.0,
-            measured.light_ratio
-        );
+        let (measured, noise) = case.measure_as_the_study_does(technique.as_ref());
         assert!(noise.image_tiles < 0.04, "{}", noise.image_tiles);
         assert!(
             (0.85..=1.15).contains(&measured.light_ratio),
@@ -745,6 +734,30 @@ fn generated_suites_light_their_unlit_room_through_the_doorway() {
             measured.image_tiles
         );
     }
+}
+
+/// Two rooms lit by a point light inside a lampshade open below, seen from
+/// the unlit room (variant 79 of the default family). The shade bounces
+/// much of its light inside before letting it out, which a room's texel
+/// size cannot resolve on a 32 cm face; the atlas now gives the shade's
+/// inside finer texels (`lightmap.refine_near_lights`). Measured at the
+/// study's settings (`relight robustness -t pic --preset high --first 79
+/// --variants 1`): light in view 0.807x before, 0.899x after, 8x8 tiles
+/// 25.7 -> 16.8 % (the reference's own tile noise is 9.4 %, so the tiles
+/// are not held to the 8 %). Bound: the 0.85-1.15x in an
+/// unlit room.
+#[test]
+fn a_room_lit_by_a_shaded_lamp_gets_its_light() {
+    let case =
+        relight_render::robustness::VariantCase::default_family(79).expect("the variant loads");
+    assert!(case.context.atlas.near_light_charts > 0);
+    let technique = pic(&case.context, &[("preset", "high")]);
+    let (measured, _) = case.measure_as_the_study_does(technique.as_ref());
+    assert!(
+        (0.85..=1.15).contains(&measured.light_ratio),
+        "{}",
+        measured.light_ratio
+    );
 }
 
 /// No cache links more solid angle than it can see. Each surfel sample is

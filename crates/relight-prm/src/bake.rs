@@ -1033,6 +1033,14 @@ struct PaneTargets<'a> {
     /// between charts (Sponza: the panes' rays ran at half the scene's
     /// diffuse occlusion rate).
     order: Vec<u32>,
+    /// Per pane point, the surface it stands for against a detail-region
+    /// texel's, so that an entry's share of its cluster's light is a share
+    /// of light over the surface: with every receiver a pane point, the
+    /// finer texels of a lampshade would otherwise count its light up to
+    /// 64 times over, and its entries' irradiance, hundreds of times the
+    /// room's, would weight their whole cluster. Binned pane points stand
+    /// for a bin each: 1.
+    areas: Vec<f32>,
 }
 
 impl<'a> PaneTargets<'a> {
@@ -1043,6 +1051,11 @@ impl<'a> PaneTargets<'a> {
                 positions: (&receivers.positions[..]).into(),
                 normals: (&receivers.normals[..]).into(),
                 order: (0..receivers.len() as u32).collect(),
+                areas: receivers
+                    .triangles
+                    .iter()
+                    .map(|&triangle| context.atlas.texel_area_weight(triangle))
+                    .collect(),
             };
         }
         let pick = |values: &[Vec3]| -> Vec<Vec3> {
@@ -1055,6 +1068,7 @@ impl<'a> PaneTargets<'a> {
         let positions = pick(&receivers.positions);
         Self {
             order: relight_trace::direct::morton_order(&positions),
+            areas: vec![1.0; positions.len()],
             positions: positions.into(),
             normals: pick(&receivers.normals).into(),
         }
@@ -1063,7 +1077,8 @@ impl<'a> PaneTargets<'a> {
 
 /// Adds one virtual light's irradiance at every pane point (shadow rays),
 /// with the disc guard: E = flux / pi * cos_l cos_x / (d^2 + r^2), and
-/// returns the luminance it added over all receivers.
+/// returns the luminance it added over the surface (each pane point's
+/// weighted by the area it stands for).
 fn gather(
     context: &SceneContext,
     targets: &PaneTargets,
@@ -1099,7 +1114,7 @@ fn gather(
             / (distance_squared * (distance_squared + disc_radius_squared));
         let contribution = light.flux * (geometry * std::f32::consts::FRAC_1_PI);
         *value += contribution;
-        added += luminance(contribution) as f64;
+        added += (luminance(contribution) * targets.areas[index]) as f64;
     }
     added
 }

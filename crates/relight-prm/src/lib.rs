@@ -132,6 +132,15 @@
 //!   total luminance, which makes every cluster's total light exact: the
 //!   unlit room of `two-rooms` (camera in room B) goes from 0.85x to 0.97x
 //!   the path tracer's light and from 22.6 % to 12.0 % 8x8-tile error.
+//!   The share is of light over the surface: each pane point's light is
+//!   weighted by the area its texel stands for, since texels near a light
+//!   are finer (`lightmap.refine_near_lights`).
+//! - PRM lights the rooms of shaded lamps up to four times too brightly
+//!   (`relight robustness -t prm`, the variants with a light in a shade).
+//!   The likely cause, not yet confirmed: a cluster whose entries'
+//!   irradiance differs a hundredfold (an entry inside the shade beside
+//!   entries on the ceiling around it) lends the hot entry's irradiance
+//!   to the others' paths. Not fixed.
 //! - Near-field light is sampled only as densely as the entry points
 //!   (about 1.4 m apart on Sponza at 4096): receivers within a few tenths
 //!   of a metre of a lit surface (corners, column bases) got too little

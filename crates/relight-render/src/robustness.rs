@@ -11,18 +11,24 @@
 //! [`ContactError::of`] adds the feet's tiles, and [`bound`] says what a
 //! variant of each kind is held to.
 
-use crate::convergence::{shrink_camera, TILE};
+use crate::convergence::{shrink_camera, Measurement, Noise, TILE};
 use crate::image::Image;
 use crate::metrics::{subset_error, tile_means};
 use glam::Vec3;
 use relight_scene::generate::variants::{Foot, Variant, VariantKind};
 use relight_scene::SceneError;
-use relight_technique::{ContextSettings, SceneContext};
+use relight_technique::{ContextSettings, SceneContext, Technique};
 use relight_trace::bvh::Ray;
 use relight_trace::path::CameraRays;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+
+/// How `relight robustness` measures a variant by default: its camera
+/// halved on each side, and 256 paths per pixel, receiver and point in
+/// space for the reference.
+pub const STUDY_SHRINK: u32 = 2;
+pub const STUDY_PATHS: u32 = 256;
 
 /// One generated variant, loaded.
 pub struct VariantCase {
@@ -75,6 +81,37 @@ impl VariantCase {
         // Left behind, it costs only disk space.
         let _ = std::fs::remove_dir_all(&folder);
         loaded
+    }
+
+    /// Variant `index` of the generator's default family, loaded as the
+    /// study loads it ([`STUDY_SHRINK`], default context settings): where a
+    /// test that holds a technique to the study's figures starts.
+    pub fn default_family(index: usize) -> Result<Self, SceneError> {
+        let variant = relight_scene::generate::variants::variant(
+            relight_scene::generate::variants::VARIANTS_DEFAULT_SEED,
+            index,
+        );
+        Self::load_temporary(variant, STUDY_SHRINK, ContextSettings::default())
+    }
+
+    /// `technique`, already updated under the variant's lights, against
+    /// the path tracer at [`STUDY_PATHS`], as the study measures it; prints
+    /// the figures a test's bounds read.
+    pub fn measure_as_the_study_does(&self, technique: &dyn Technique) -> (Measurement, Noise) {
+        let (measured, noise) = crate::convergence::measure_against_path_tracer(
+            &self.context,
+            technique,
+            STUDY_PATHS,
+            STUDY_PATHS,
+        );
+        println!(
+            "{}: 8x8 tiles {:.1} % (reference noise {:.1} %), light in view {:.3}x",
+            self.variant.name(),
+            measured.image_tiles * 100.0,
+            noise.image_tiles * 100.0,
+            measured.light_ratio
+        );
+        (measured, noise)
     }
 }
 

@@ -23,7 +23,10 @@
 //!
 //! Texel density is uniform inside the scene's detail region and coarsens
 //! ring by ring outside it ([`crate::detail`]): charts grow within one ring
-//! and each is projected at its ring's texel size.
+//! and each is projected at its ring's texel size. Small charts near the
+//! scene file's point and spot lights (a lampshade, a sconce) are projected
+//! finer, so the light they bounce is resolved (`refine_near_lights`); the
+//! other charts keep their texels.
 
 use crate::detail::DetailRegion;
 use crate::{Scene, SceneError};
@@ -120,6 +123,10 @@ pub struct Atlas {
     pub height: u32,
     /// Texel-space UVs of each triangle's corners (0..width, 0..height).
     pub triangle_uvs: Vec<[Vec2; 3]>,
+    /// Each triangle's texel edge over [`Self::metres_per_texel`]: 1 in the
+    /// detail region, 4^k in ring k, below 1 near a light; empty for the
+    /// mesh's own UVs (see [`Self::texel_area_weight`]).
+    pub triangle_texel_scales: Vec<f32>,
     /// For each texel, its receiver index or `u32::MAX` when empty.
     pub receiver_of_texel: Vec<u32>,
     pub receivers: Receivers,
@@ -131,6 +138,9 @@ pub struct Atlas {
     /// True when the mesh's own second UV set was used.
     pub from_mesh_uvs: bool,
     pub chart_count: usize,
+    /// Charts given finer texels for standing near a point or spot light
+    /// of the scene file (`lightmap.refine_near_lights`).
+    pub near_light_charts: usize,
     /// Metres per texel edge inside the detail region: as generated, or for
     /// the mesh's own UVs the mean over the surface (0 only for a mesh
     /// without area).
@@ -143,6 +153,15 @@ pub struct Atlas {
 const EMPTY: u32 = u32::MAX;
 
 impl Atlas {
+    /// The area of a texel on `triangle` over a detail-region texel's:
+    /// what a sum over receivers weights each by to sum over the surface
+    /// (exactly 1 where texels are uniform, and for the mesh's own UVs).
+    pub fn texel_area_weight(&self, triangle: u32) -> f32 {
+        self.triangle_texel_scales
+            .get(triangle as usize)
+            .map_or(1.0, |scale| scale * scale)
+    }
+
     /// Builds the atlas of `scene` at the requested density.
     pub fn build(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
         if density_is_invalid(density) {
@@ -164,19 +183,41 @@ impl Atlas {
                 .collect(),
             None => vec![0; scene.mesh.triangles.len()],
         };
-        let charts = grow_charts(scene, &rings);
-        let (metres_per_texel, (width, height, triangle_uvs)) = match density {
-            TexelDensity::MetresPerTexel(metres) => {
-                (metres, pack_charts(scene, &charts, metres, None))
-            }
-            TexelDensity::TargetResolution(resolution) => {
-                fit_resolution(scene, &charts, resolution)?
-            }
+        let mut charts = grow_charts(scene, &rings);
+        let resolution = match density {
+            TexelDensity::MetresPerTexel(_) => None,
+            TexelDensity::TargetResolution(resolution) => Some(resolution),
             TexelDensity::Automatic { minimum } => {
                 let crowded = (2 * minimal_resolution(charts.len())).next_power_of_two();
-                fit_resolution(scene, &charts, minimum.max(crowded).min(16384))?
+                Some(minimum.max(crowded).min(16384))
             }
         };
+        let fit = |charts: &[Chart]| match (density, resolution) {
+            (TexelDensity::MetresPerTexel(metres), _) => {
+                Ok((metres, pack_charts(scene, charts, metres, None)))
+            }
+            (_, resolution) => fit_resolution(scene, charts, resolution.unwrap_or(128)),
+        };
+        let (mut metres_per_texel, mut packed) = fit(&charts)?;
+        let near_light_charts = if scene.lightmap_layout.refine_near_lights {
+            refine_near_lights(scene, &mut charts, metres_per_texel)
+        } else {
+            0
+        };
+        if near_light_charts > 0 {
+            // Every other chart keeps the texel size it had, and so its
+            // texels: an automatic atlas grows a few rows for the refined
+            // charts rather than coarsening the rest; a requested
+            // resolution is kept.
+            let kept = pack_charts(scene, &charts, metres_per_texel, resolution);
+            match (density, resolution) {
+                (TexelDensity::TargetResolution(side), _) if kept.0.max(kept.1) > side => {
+                    (metres_per_texel, packed) = fit(&charts)?;
+                }
+                _ => packed = kept,
+            }
+        }
+        let (width, height, triangle_uvs) = packed;
         if (width as u64) * (height as u64) > 16384 * 16384 {
             return Err(SceneError::Invalid {
                 path: scene.source.clone(),
@@ -188,6 +229,13 @@ impl Atlas {
         }
         let mut atlas = Self::rasterise(scene, width, height, triangle_uvs);
         atlas.chart_count = charts.len();
+        atlas.triangle_texel_scales = vec![1.0; scene.mesh.triangles.len()];
+        for chart in &charts {
+            for &triangle in &chart.triangles {
+                atlas.triangle_texel_scales[triangle as usize] = chart.texel_scale;
+            }
+        }
+        atlas.near_light_charts = near_light_charts;
         atlas.metres_per_texel = metres_per_texel;
         atlas.detail = detail.filter(|_| rings.iter().any(|&ring| ring > 0));
         Ok(atlas)
@@ -339,6 +387,8 @@ impl Atlas {
             dilation,
             from_mesh_uvs: false,
             chart_count: 0,
+            near_light_charts: 0,
+            triangle_texel_scales: Vec::new(),
             metres_per_texel: 0.0,
             detail: None,
         }
@@ -575,6 +625,100 @@ struct Chart {
     tangent: Vec3,
     bitangent: Vec3,
     texel_scale: f32,
+}
+
+/// A chart near a point or spot light gets texels no longer than its
+/// distance to the light over this: the light's irradiance falls as 1/d^2,
+/// so a texel a quarter of d across varies about 1.5x from edge to edge.
+const NEAR_LIGHT_DISTANCE_PER_TEXEL: f32 = 4.0;
+
+/// Texel edges near a light are at most this many times finer than the
+/// detail region's.
+const NEAR_LIGHT_FINEST_SCALE: f32 = 0.125;
+
+/// A chart refined near a light holds at most this many texels.
+const NEAR_LIGHT_CHART_TEXELS: f32 = 256.0;
+
+/// Only charts of at most this many texels at the room's texel size are
+/// refined: a lampshade's face (one or two texels), not a wall or ceiling
+/// beside a light, which the room's texels already resolve into several
+/// and whose refinement would take a requested atlas's texels from
+/// everything else (the shipped two rooms at a 64-texel lightmap: 4
+/// charts near the light made every other texel 26 % longer).
+const NEAR_LIGHT_SMALL_CHART_TEXELS: f32 = 16.0;
+
+/// Gives the small charts that stand near a point or spot light of the
+/// scene file, and face it, finer texels; returns how many changed.
+///
+/// A light inside a shade, a sconce or a recess heats the few square
+/// decimetres around it hundreds of times brighter than the room, and much
+/// of the light that leaves it has bounced inside first (a 32 cm shade of
+/// albedo 0.75, open below, lets about 14 % of the light out directly and,
+/// by a cavity estimate, about twice that after bounces off its inside). At
+/// a room's texel size such a shade is one or two texels a face: the light
+/// at one point of each stands for a face over which it varies fivefold,
+/// and the bounces inside are not resolved, so every technique lit the
+/// rooms of such lamps too dark. A chart's back (the shade's outside) is
+/// lit as the rest of the room is and keeps its texels: refined too, it
+/// made SRP's room brighter than the path tracer's. Only the charts near
+/// the lights change, so a scene whose lights stand in the open keeps its
+/// atlas. The lights are those of the scene file: a light moved at run
+/// time leaves the refinement where the file put it.
+fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32) -> usize {
+    let positions: Vec<Vec3> = scene
+        .lights
+        .iter()
+        .filter_map(|light| match *light {
+            crate::Light::Point { position, .. } | crate::Light::Spot { position, .. } => {
+                Some(position)
+            }
+            crate::Light::Directional { .. } => None,
+        })
+        .collect();
+    if positions.is_empty() || metres_per_texel.is_nan() || metres_per_texel <= 0.0 {
+        return 0;
+    }
+    let mut refined = 0;
+    for chart in charts.iter_mut().filter(|chart| chart.texel_scale == 1.0) {
+        let mut low = Vec3::splat(f32::INFINITY);
+        let mut high = Vec3::splat(f32::NEG_INFINITY);
+        let mut area = 0.0f32;
+        for &triangle in &chart.triangles {
+            for vertex in scene.mesh.vertices(triangle as usize) {
+                low = low.min(vertex);
+                high = high.max(vertex);
+            }
+            area += scene.mesh.area(triangle as usize);
+        }
+        // Only a light in front of the chart lights it directly; its back
+        // (a shade's outside) is lit as the rest of the room is.
+        let faces = |light: Vec3| {
+            chart.triangles.iter().any(|&triangle| {
+                let [corner, ..] = scene.mesh.vertices(triangle as usize);
+                scene
+                    .mesh
+                    .geometric_normal(triangle as usize)
+                    .dot(light - corner)
+                    > 0.0
+            })
+        };
+        if area > NEAR_LIGHT_SMALL_CHART_TEXELS * metres_per_texel * metres_per_texel {
+            continue;
+        }
+        let distance = positions
+            .iter()
+            .filter(|&&light| faces(light))
+            .map(|&light| light.clamp(low, high).distance(light))
+            .fold(f32::INFINITY, f32::min);
+        let wanted = distance / NEAR_LIGHT_DISTANCE_PER_TEXEL / metres_per_texel;
+        let within_budget = (area / NEAR_LIGHT_CHART_TEXELS).sqrt() / metres_per_texel;
+        let scale = wanted.max(within_budget).max(NEAR_LIGHT_FINEST_SCALE);
+        if scale < 1.0 {
+            chart.texel_scale = scale;
+            refined += 1;
+        }
+    }
+    refined
 }
 
 /// Grows charts by flood fill over shared edges, in triangle order, so the
@@ -1266,6 +1410,109 @@ mod tests {
     /// atrium, 512 texels a side). Fails with the covered part's middle
     /// that this replaced, whose shoelace sums at such coordinates lost
     /// the area to rounding and put receivers up to 5 texels away.
+    /// The two quads of [`quad_scene`] (2 m) and a 0.3 m square facing
+    /// down 1.5 m above the floor, with a point light `light_below` under
+    /// the square's centre (above it when negative): a lampshade's top in
+    /// miniature.
+    fn shade_scene(light_below: f32) -> Scene {
+        let mut scene = quad_scene(2.0);
+        let base = scene.mesh.positions.len() as u32;
+        scene.mesh.positions.extend([
+            Vec3::new(0.85, 1.5, 0.85),
+            Vec3::new(1.15, 1.5, 0.85),
+            Vec3::new(1.15, 1.5, 1.15),
+            Vec3::new(0.85, 1.5, 1.15),
+        ]);
+        scene
+            .mesh
+            .triangles
+            .extend([[base, base + 1, base + 2], [base, base + 2, base + 3]]);
+        scene.mesh.material_ids.extend([0, 0]);
+        scene.lights = vec![crate::Light::Point {
+            position: Vec3::new(1.0, 1.5 - light_below, 1.0),
+            intensity: Rgb::ONE,
+        }];
+        scene
+    }
+
+    fn on_the_square(point: Vec3) -> bool {
+        (point.y - 1.5).abs() < 1e-4
+    }
+
+    fn receivers_on_the_square(atlas: &Atlas) -> usize {
+        (0..atlas.receivers.len())
+            .filter(|&index| on_the_square(atlas.receivers.positions[index]))
+            .count()
+    }
+
+    #[test]
+    fn charts_near_a_light_get_finer_texels() {
+        let density = TexelDensity::MetresPerTexel(0.2);
+        let far = Atlas::build(&shade_scene(10.0), density).unwrap();
+        let near = Atlas::build(&shade_scene(0.1), density).unwrap();
+        // 0.1 m from the light the square wants 2.5 cm texels, 8x finer than
+        // 20 cm, the finest allowed: 12 x 12 texels or more instead of 2 x 2
+        // with the conservative ring.
+        assert_eq!(far.near_light_charts, 0);
+        assert_eq!(near.near_light_charts, 1);
+        assert!(receivers_on_the_square(&far) <= 9);
+        assert!(
+            receivers_on_the_square(&near) >= 144,
+            "{} receivers on the square",
+            receivers_on_the_square(&near)
+        );
+        // The floor and the wall keep their texels: the same receivers
+        // stand at the same points.
+        let others = |atlas: &Atlas| -> Vec<[u32; 3]> {
+            let mut points: Vec<[u32; 3]> = (0..atlas.receivers.len())
+                .filter(|&index| !on_the_square(atlas.receivers.positions[index]))
+                .map(|index| {
+                    atlas.receivers.positions[index]
+                        .to_array()
+                        .map(f32::to_bits)
+                })
+                .collect();
+            points.sort_unstable();
+            points
+        };
+        assert_eq!(others(&far), others(&near));
+        // A light standing in the open (2 m from the square, 0.5 m from the
+        // floor it lights) leaves the atlas as it was.
+        let mut open = shade_scene(10.0);
+        open.lights = vec![crate::Light::Point {
+            position: Vec3::new(1.0, 0.5, 1.0),
+            intensity: Rgb::ONE,
+        }];
+        let open = Atlas::build(&open, density).unwrap();
+        assert_eq!(open.near_light_charts, 0);
+        assert_eq!(
+            (open.width, open.height, &open.triangle_uvs),
+            (far.width, far.height, &far.triangle_uvs)
+        );
+        // A light behind the square (a shade's outside) does not light it.
+        let behind = Atlas::build(&shade_scene(-0.1), density).unwrap();
+        assert_eq!(behind.near_light_charts, 0);
+        // The scene file's switch turns it off.
+        let mut off = shade_scene(0.1);
+        off.lightmap_layout.refine_near_lights = false;
+        let off = Atlas::build(&off, density).unwrap();
+        assert_eq!(off.near_light_charts, 0);
+        assert_eq!(receivers_on_the_square(&off), receivers_on_the_square(&far));
+    }
+
+    #[test]
+    fn refined_charts_keep_the_rest_of_an_automatic_atlas_and_a_requested_resolution() {
+        let automatic = TexelDensity::Automatic { minimum: 32 };
+        let far = Atlas::build(&shade_scene(10.0), automatic).unwrap();
+        let near = Atlas::build(&shade_scene(0.1), automatic).unwrap();
+        assert_eq!(near.metres_per_texel, far.metres_per_texel);
+        assert!(receivers_on_the_square(&near) > receivers_on_the_square(&far));
+        let requested = TexelDensity::TargetResolution(32);
+        let near = Atlas::build(&shade_scene(0.1), requested).unwrap();
+        assert_eq!(near.near_light_charts, 1);
+        assert!(near.width.max(near.height) <= 32);
+    }
+
     #[test]
     fn receivers_stand_nearest_their_texel_centres() {
         let folder = std::env::temp_dir().join(format!("relight-atlas-{}", std::process::id()));

@@ -44,10 +44,23 @@ pub enum LightmapDetail {
 
 /// Settings of the `[lightmap]` section: the layout and, when given, the
 /// width of full-density margin around the detail region in metres.
-#[derive(Clone, Copy, Debug, PartialEq, Default)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LightmapLayout {
     pub detail: LightmapDetail,
     pub margin: Option<f32>,
+    /// Charts near the scene file's point and spot lights get finer texels
+    /// (`refine_near_lights`, on unless set to false).
+    pub refine_near_lights: bool,
+}
+
+impl Default for LightmapLayout {
+    fn default() -> Self {
+        Self {
+            detail: LightmapDetail::default(),
+            margin: None,
+            refine_near_lights: true,
+        }
+    }
 }
 
 /// Rings beyond the last one all take its texel size (4^4 = 256 times the
@@ -447,7 +460,7 @@ mod tests {
         assert_eq!(region.margin, 1.0);
         let uniform = LightmapLayout {
             detail: LightmapDetail::Uniform,
-            margin: None,
+            ..LightmapLayout::default()
         };
         assert_eq!(DetailRegion::of(&mesh, uniform), None);
     }

@@ -105,6 +105,7 @@ struct RawLightmap {
     detail_min: Option<Spanned3>,
     detail_max: Option<Spanned3>,
     detail_margin: Option<Spanned<f32>>,
+    refine_near_lights: Option<bool>,
 }
 
 /// 1-based line of a byte offset, for error messages.
@@ -227,7 +228,11 @@ impl TextSource<'_> {
             Some(margin) => Some(*margin.get_ref()),
             None => None,
         };
-        Ok(LightmapLayout { detail, margin })
+        Ok(LightmapLayout {
+            detail,
+            margin,
+            refine_near_lights: raw.refine_near_lights.unwrap_or(true),
+        })
     }
 
     fn camera(&self, raw: &RawCamera) -> Result<Camera, SceneError> {
@@ -653,6 +658,7 @@ fn cut_for_lightmap_detail(
             high: region.high,
         },
         margin: Some(region.margin),
+        ..layout
     };
     if !mesh.lightmap_uvs.is_empty() {
         return fixed;

@@ -149,6 +149,7 @@ fn bad_lightmap_sections_are_errors_with_their_line() {
         ("detail_margin = -1\n", "positive"),
         ("detail_margin = nan\n", "positive"),
         ("margin = 1\n", "margin"),
+        ("refine_near_lights = \"yes\"\n", "expected a boolean"),
     ];
     for (section, expected) in cases {
         let dir = TempDir::new("detail-errors");
@@ -166,4 +167,16 @@ fn bad_lightmap_sections_are_errors_with_their_line() {
             other => panic!("{section:?}: {other}"),
         }
     }
+}
+
+/// `refine_near_lights` reads as a switch, on unless the file turns it off.
+#[test]
+fn refining_near_lights_is_on_unless_turned_off() {
+    let dir = TempDir::new("detail-near-lights");
+    assert!(load(&dir, "").lightmap_layout.refine_near_lights);
+    assert!(
+        !load(&dir, "[lightmap]\nrefine_near_lights = false\n")
+            .lightmap_layout
+            .refine_near_lights
+    );
 }
