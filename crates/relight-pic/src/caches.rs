@@ -27,7 +27,7 @@ pub fn cache_atlas(
     // Trial atlases are only counted; relocation (rays per receiver, and it
     // never changes the count) runs once, on the chosen one.
     for _ in 0..6 {
-        let atlas = Atlas::build(&context.scene, TexelDensity::MetresPerTexel(metres))
+        let atlas = Atlas::build_unrefined(&context.scene, TexelDensity::MetresPerTexel(metres))
             .map_err(|error| TechniqueError::Other(error.to_string()))?;
         let count = atlas.receivers.len();
         let ratio = count as f32 / target as f32;

@@ -115,7 +115,7 @@ impl Pic {
         settings.chroma_bands = settings.chroma_bands.clamp(1, settings.bands);
         let own_atlas = if bake.cache_atlas_metres > 0.0 {
             Some(
-                Atlas::build(
+                Atlas::build_unrefined(
                     &context.scene,
                     TexelDensity::MetresPerTexel(bake.cache_atlas_metres),
                 )

@@ -164,6 +164,23 @@ impl Atlas {
 
     /// Builds the atlas of `scene` at the requested density.
     pub fn build(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
+        Self::build_refining(scene, density, scene.lightmap_layout.refine_near_lights)
+    }
+
+    /// [`Self::build`] without finer texels near lights, for an atlas that
+    /// places a technique's samples rather than holding light (PIC's
+    /// caches): at its coarse texels whole walls and tables near a light
+    /// count as small charts, and its receiver count would stop following
+    /// its texel size.
+    pub fn build_unrefined(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
+        Self::build_refining(scene, density, false)
+    }
+
+    fn build_refining(
+        scene: &Scene,
+        density: TexelDensity,
+        near_lights: bool,
+    ) -> Result<Self, SceneError> {
         if density_is_invalid(density) {
             return Err(SceneError::Invalid {
                 path: scene.source.clone(),
@@ -199,7 +216,7 @@ impl Atlas {
             (_, resolution) => fit_resolution(scene, charts, resolution.unwrap_or(128)),
         };
         let (mut metres_per_texel, mut packed) = fit(&charts)?;
-        let near_light_charts = if scene.lightmap_layout.refine_near_lights {
+        let near_light_charts = if near_lights {
             refine_near_lights(scene, &mut charts, metres_per_texel)
         } else {
             0
@@ -581,6 +598,7 @@ impl Atlas {
             + self.receiver_of_texel.len() * 4
             + self.receivers.len() * (8 + 12 + 12 + 4 + 8 + 12)
             + self.dilation.len() * 8
+            + self.triangle_texel_scales.len() * 4
     }
 }
 
@@ -1404,12 +1422,6 @@ mod tests {
         }
     }
 
-    /// Every receiver stands at the point of its triangle nearest its
-    /// texel's centre, so within half a texel diagonal of it in the atlas,
-    /// on an atlas whose coordinates run into the hundreds (a generated
-    /// atrium, 512 texels a side). Fails with the covered part's middle
-    /// that this replaced, whose shoelace sums at such coordinates lost
-    /// the area to rounding and put receivers up to 5 texels away.
     /// The two quads of [`quad_scene`] (2 m) and a 0.3 m square facing
     /// down 1.5 m above the floor, with a point light `light_below` under
     /// the square's centre (above it when negative): a lampshade's top in
@@ -1476,7 +1488,7 @@ mod tests {
             points
         };
         assert_eq!(others(&far), others(&near));
-        // A light standing in the open (2 m from the square, 0.5 m from the
+        // A light standing in the open (1 m from the square, 0.5 m from the
         // floor it lights) leaves the atlas as it was.
         let mut open = shade_scene(10.0);
         open.lights = vec![crate::Light::Point {
@@ -1488,6 +1500,13 @@ mod tests {
         assert_eq!(
             (open.width, open.height, &open.triangle_uvs),
             (far.width, far.height, &far.triangle_uvs)
+        );
+        // An atlas that places samples (PIC's caches) is built without it.
+        let unrefined = Atlas::build_unrefined(&shade_scene(0.1), density).unwrap();
+        assert_eq!(unrefined.near_light_charts, 0);
+        assert_eq!(
+            receivers_on_the_square(&unrefined),
+            receivers_on_the_square(&far)
         );
         // A light behind the square (a shade's outside) does not light it.
         let behind = Atlas::build(&shade_scene(-0.1), density).unwrap();
@@ -1513,6 +1532,12 @@ mod tests {
         assert!(near.width.max(near.height) <= 32);
     }
 
+    /// Every receiver stands at the point of its triangle nearest its
+    /// texel's centre, so within half a texel diagonal of it in the atlas,
+    /// on an atlas whose coordinates run into the hundreds (a generated
+    /// atrium, 512 texels a side). Fails with the covered part's middle
+    /// that this replaced, whose shoelace sums at such coordinates lost
+    /// the area to rounding and put receivers up to 5 texels away.
     #[test]
     fn receivers_stand_nearest_their_texel_centres() {
         let folder = std::env::temp_dir().join(format!("relight-atlas-{}", std::process::id()));
