@@ -32,10 +32,10 @@ pub struct MeasureSettings {
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     pub spp: u32,
     /// Paths per pixel for the reference image.
-    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = relight_render::robustness::STUDY_PATHS, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_spp: u32,
     /// Paths per receiver (and point in space) for the reference.
-    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = relight_render::robustness::STUDY_PATHS, value_parser = clap::value_parser!(u32).range(1..))]
     pub reference_samples: u32,
     /// Indirect bounces of the reference (a technique that computes fewer
     /// is measured against a reference limited to as many).

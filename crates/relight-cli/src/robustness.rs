@@ -38,7 +38,7 @@ pub struct RobustnessSettings {
     #[arg(long, default_value_t = 0)]
     pub first: usize,
     /// Camera images at 1/N of the variants' 320x240 on each side.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = relight_render::robustness::STUDY_SHRINK)]
     pub shrink: u32,
     #[command(flatten)]
     pub measure: MeasureSettings,

@@ -24,10 +24,12 @@ use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-/// How `relight robustness` measures a variant by default: its camera
-/// halved on each side, and 256 paths per pixel, receiver and point in
-/// space for the reference.
+/// How `relight robustness` measures a variant by default (its
+/// `--shrink`): the camera halved on each side.
 pub const STUDY_SHRINK: u32 = 2;
+
+/// The reference's paths per pixel, receiver and point in space that
+/// `relight robustness` and `relight converge` default to.
 pub const STUDY_PATHS: u32 = 256;
 
 /// One generated variant, loaded.

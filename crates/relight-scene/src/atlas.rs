@@ -201,19 +201,20 @@ impl Atlas {
             None => vec![0; scene.mesh.triangles.len()],
         };
         let mut charts = grow_charts(scene, &rings);
-        let resolution = match density {
-            TexelDensity::MetresPerTexel(_) => None,
-            TexelDensity::TargetResolution(resolution) => Some(resolution),
+        let sizing = match density {
+            TexelDensity::MetresPerTexel(metres) => Sizing::Given(metres),
+            TexelDensity::TargetResolution(side) => Sizing::Fitted { side, kept: true },
             TexelDensity::Automatic { minimum } => {
                 let crowded = (2 * minimal_resolution(charts.len())).next_power_of_two();
-                Some(minimum.max(crowded).min(16384))
+                Sizing::Fitted {
+                    side: minimum.max(crowded).min(16384),
+                    kept: false,
+                }
             }
         };
-        let fit = |charts: &[Chart]| match (density, resolution) {
-            (TexelDensity::MetresPerTexel(metres), _) => {
-                Ok((metres, pack_charts(scene, charts, metres, None)))
-            }
-            (_, resolution) => fit_resolution(scene, charts, resolution.unwrap_or(128)),
+        let fit = |charts: &[Chart]| match sizing {
+            Sizing::Given(metres) => Ok((metres, pack_charts(scene, charts, metres, None))),
+            Sizing::Fitted { side, .. } => fit_resolution(scene, charts, side),
         };
         let (mut metres_per_texel, mut packed) = fit(&charts)?;
         let near_light_charts = if near_lights {
@@ -226,13 +227,19 @@ impl Atlas {
             // texels: an automatic atlas grows a few rows for the refined
             // charts rather than coarsening the rest; a requested
             // resolution is kept.
-            let kept = pack_charts(scene, &charts, metres_per_texel, resolution);
-            match (density, resolution) {
-                (TexelDensity::TargetResolution(side), _) if kept.0.max(kept.1) > side => {
-                    (metres_per_texel, packed) = fit(&charts)?;
+            packed = match sizing {
+                Sizing::Given(metres) => pack_charts(scene, &charts, metres, None),
+                Sizing::Fitted { side, kept } => {
+                    let grown = pack_charts(scene, &charts, metres_per_texel, Some(side));
+                    if kept && grown.0.max(grown.1) > side {
+                        let refitted;
+                        (metres_per_texel, refitted) = fit(&charts)?;
+                        refitted
+                    } else {
+                        grown
+                    }
                 }
-                _ => packed = kept,
-            }
+            };
         }
         let (width, height, triangle_uvs) = packed;
         if (width as u64) * (height as u64) > 16384 * 16384 {
@@ -636,6 +643,15 @@ fn minimal_resolution(chart_count: usize) -> u32 {
     (8..=16384).find(|&side| fits(side)).unwrap_or(16384)
 }
 
+/// How an atlas's texel size is found: given, or fitted to a square side
+/// that a requested resolution keeps and an automatic one may outgrow by a
+/// few rows for charts refined near lights.
+#[derive(Clone, Copy)]
+enum Sizing {
+    Given(f32),
+    Fitted { side: u32, kept: bool },
+}
+
 /// A chart: triangles, the plane basis they are projected onto and its
 /// texel size relative to the detail region's.
 struct Chart {
@@ -697,16 +713,23 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
         return 0;
     }
     let mut refined = 0;
+    let small = NEAR_LIGHT_SMALL_CHART_TEXELS * metres_per_texel * metres_per_texel;
     for chart in charts.iter_mut().filter(|chart| chart.texel_scale == 1.0) {
+        let area: f32 = chart
+            .triangles
+            .iter()
+            .map(|&triangle| scene.mesh.area(triangle as usize))
+            .sum();
+        if area > small {
+            continue;
+        }
         let mut low = Vec3::splat(f32::INFINITY);
         let mut high = Vec3::splat(f32::NEG_INFINITY);
-        let mut area = 0.0f32;
         for &triangle in &chart.triangles {
             for vertex in scene.mesh.vertices(triangle as usize) {
                 low = low.min(vertex);
                 high = high.max(vertex);
             }
-            area += scene.mesh.area(triangle as usize);
         }
         // Only a light in front of the chart lights it directly; its back
         // (a shade's outside) is lit as the rest of the room is.
@@ -720,9 +743,6 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
                     > 0.0
             })
         };
-        if area > NEAR_LIGHT_SMALL_CHART_TEXELS * metres_per_texel * metres_per_texel {
-            continue;
-        }
         let distance = positions
             .iter()
             .filter(|&&light| faces(light))
