@@ -37,6 +37,16 @@
 //! rays, so small scenes get up to 1024 rays a receiver (a fixed budget of
 //! rays a frame; large scenes get 64).
 //!
+//! The brightest such spots, a lampshade's or a recess's inside around a
+//! light, are too small and too bright for any ray count: one receiver's
+//! rays catch them and its neighbour's miss, and the walls beside a shaded
+//! lamp showed oval spots. The charts the atlas refined near a light are
+//! therefore sampled explicitly (see `HotSurfaces`): points at their texel
+//! density, which each gathering receiver weights by their form factor
+//! where it sees them (found once at load, a weighted sum a frame), while
+//! its rays skip those charts. A receiver that sees them over much of its
+//! view (inside the shade) counts them by its rays, which find them often.
+//!
 //! Costs, all at run time (no bake): the load traces 64 short rays per
 //! receiver plus the rays of the gathering ones; a frame computes the
 //! direct light at each hit point and sums the rays' hits; the hits take
@@ -72,7 +82,9 @@
 use crate::{MemoryEntry, SceneContext};
 use glam::{Vec2, Vec3, Vec3A};
 use rayon::prelude::*;
-use relight_core::sampling::{cosine_hemisphere, mix64, orthonormal_basis, radical_inverse};
+use relight_core::sampling::{
+    cosine_hemisphere, mix64, orthonormal_basis, radical_inverse, uniform_triangle,
+};
 use relight_core::Rgb;
 use relight_scene::Light;
 use relight_trace::direct::{morton_order, StaticDirect};
@@ -124,6 +136,49 @@ fn texel_point(context: &SceneContext, triangle: u32, texel: usize) -> (Vec3, Ve
         context.scene.mesh.point_at(triangle as usize, barycentric),
         barycentric,
     )
+}
+
+/// The slot key of a point on `triangle` seen from its `back` or front:
+/// its texel's receiver where the point lies on that receiver's plane
+/// within a texel of it, else a point of its own on the triangle;
+/// `MISS_KEY` for a texel no receiver covers.
+fn hit_key(
+    context: &SceneContext,
+    receiver_of_texel: &[u32],
+    triangle: u32,
+    barycentric: Vec2,
+    back: bool,
+) -> u64 {
+    let atlas = &context.atlas;
+    if triangle as usize >= atlas.triangle_uvs.len() {
+        return MISS_KEY;
+    }
+    let receivers = &atlas.receivers;
+    let (width, height) = (atlas.width as i64, atlas.height as i64);
+    let uv = atlas.uv_of(triangle, barycentric);
+    let x = (uv.x.floor() as i64).clamp(0, width - 1);
+    let y = (uv.y.floor() as i64).clamp(0, height - 1);
+    let texel = (y * width + x) as usize;
+    let receiver = receiver_of_texel[texel];
+    if receiver == MISS {
+        return MISS_KEY;
+    }
+    let receiver = receiver as usize;
+    if triangle == receivers.triangles[receiver] {
+        return HitKey::receiver(receivers.texels[receiver], width, back);
+    }
+    // The texel's receiver stands on another triangle: the one nearest
+    // the texel's centre. Where that triangle turns away from the one hit
+    // or lies elsewhere (a corner, a moulding, a chart's fold), its direct
+    // light is not the hit's, so the hit gets a point of its own.
+    let normal = context.scene.mesh.geometric_normal(triangle as usize);
+    let (point, _) = texel_point(context, triangle, texel);
+    let elsewhere = point.distance(receivers.positions[receiver]) > atlas.metres_per_texel;
+    if elsewhere || normal.dot(receivers.normals[receiver]) < SAME_PLANE_COS {
+        HitKey::triangle(texel, triangle, back)
+    } else {
+        HitKey::receiver(receivers.texels[receiver], width, back)
+    }
 }
 
 /// Where a hit slot computes its direct light, and whose technique value
@@ -274,6 +329,9 @@ pub struct FinalGather {
     receivers: Vec<u32>,
     /// The slots each gathering receiver's rays hit.
     hits: HitMatrix,
+    /// The hot-surface slots each gathering receiver sees, with their form
+    /// factors (empty rows where the scene has no hot surface).
+    explicit: WeightedRows,
     /// Per hit slot: the receiver hit and whether its back side was.
     slot_receivers: Vec<u32>,
     slot_back: Vec<bool>,
@@ -373,54 +431,58 @@ impl FinalGather {
         let receiver_of_texel = &receiver_of_texel;
         let ray_from = &ray_from;
         let samples = &samples;
-        let width = context.atlas.width as i64;
-        let height = context.atlas.height as i64;
-        let same_point = context.atlas.metres_per_texel;
+        let hot = HotSurfaces::of(context);
+        let hot = &hot;
+        // Where the hot surfaces fill enough of a receiver's view that its
+        // rays find them often (inside the shade), the rays answer better
+        // than samples a texel apart at a hand's distance, and it keeps them.
+        // `None`: the receiver's rays count the hot surfaces.
+        let explicit: Vec<Option<Vec<(u64, f32)>>> = if hot.samples.is_empty() {
+            Vec::new()
+        } else {
+            gathering
+                .par_iter()
+                .with_min_len(RECEIVERS_PER_TASK / 4)
+                .map(|&index| {
+                    let seen =
+                        hot.seen_from(context, receiver_of_texel, index as usize, samples.len());
+                    let form_factor: f32 = seen.iter().map(|&(_, weight)| weight).sum();
+                    (form_factor * (samples.len() as f32) < HOT_HITS_FOR_RAYS).then_some(seen)
+                })
+                .collect()
+        };
+        let hot_by_rays = |row: usize| explicit.get(row).is_none_or(Option::is_none);
         let keys: Vec<u64> = gathering
             .par_iter()
+            .enumerate()
             .with_min_len(RECEIVERS_PER_TASK / 4)
-            .flat_map_iter(|&index| {
+            .flat_map_iter(|(row, &index)| {
+                let skip_hot = !hot_by_rays(row);
                 samples.iter().map(move |&sample| {
                     let ray = ray_from(index as usize, sample, f32::INFINITY);
                     let Some(hit) = context.bvh.intersect(&ray) else {
                         return MISS_KEY;
                     };
-                    let triangle = hit.triangle as usize;
-                    if triangle >= context.atlas.triangle_uvs.len() {
+                    if skip_hot && hot.triangles.get(hit.triangle as usize) == Some(&true) {
+                        // Counted by the explicit samples instead.
                         return MISS_KEY;
                     }
-                    let uv = context.atlas.uv_of(hit.triangle, hit.barycentric);
-                    let x = (uv.x.floor() as i64).clamp(0, width - 1);
-                    let y = (uv.y.floor() as i64).clamp(0, height - 1);
-                    let texel = (y * width + x) as usize;
-                    let receiver = receiver_of_texel[texel];
-                    if receiver == MISS {
-                        return MISS_KEY;
-                    }
-                    let normal = context.scene.mesh.geometric_normal(triangle);
+                    let normal = context.scene.mesh.geometric_normal(hit.triangle as usize);
                     let back = normal.dot(ray.direction) > 0.0;
-                    let receiver = receiver as usize;
-                    if hit.triangle == receivers.triangles[receiver] {
-                        return HitKey::receiver(receivers.texels[receiver], width, back);
-                    }
-                    // The texel's receiver stands on another triangle: the
-                    // one nearest the texel's centre. Where that triangle
-                    // turns away from the one hit or lies elsewhere (a
-                    // corner, a moulding, a chart's fold), its direct light
-                    // is not the hit's, so the hit gets a point of its own.
-                    let (point, _) = texel_point(context, hit.triangle, texel);
-                    let elsewhere = point.distance(receivers.positions[receiver]) > same_point;
-                    if elsewhere || normal.dot(receivers.normals[receiver]) < SAME_PLANE_COS {
-                        HitKey::triangle(texel, hit.triangle, back)
-                    } else {
-                        HitKey::receiver(receivers.texels[receiver], width, back)
-                    }
+                    hit_key(
+                        context,
+                        receiver_of_texel,
+                        hit.triangle,
+                        hit.barycentric,
+                        back,
+                    )
                 })
             })
             .collect();
         let mut sorted_keys: Vec<u64> = keys
             .iter()
             .copied()
+            .chain(explicit.iter().flatten().flatten().map(|&(key, _)| key))
             .filter(|&key| key != MISS_KEY)
             .collect();
         sorted_keys.par_sort_unstable();
@@ -442,19 +504,22 @@ impl FinalGather {
         for (slot, &sorted) in order.iter().enumerate() {
             slot_of_sorted[sorted as usize] = slot as u32;
         }
-        let hits: Vec<u32> = keys
-            .par_iter()
-            .map(|&key| match key {
-                MISS_KEY => MISS,
-                key => {
-                    let sorted = sorted_keys
-                        .binary_search(&key)
-                        .expect("every hit key is sorted");
-                    slot_of_sorted[sorted]
-                }
-            })
-            .collect();
+        let slot_of_key = |key: u64| match key {
+            MISS_KEY => MISS,
+            key => {
+                let sorted = sorted_keys
+                    .binary_search(&key)
+                    .expect("every hit key is sorted");
+                slot_of_sorted[sorted]
+            }
+        };
+        let hits: Vec<u32> = keys.par_iter().map(|&key| slot_of_key(key)).collect();
         let hits = HitMatrix::new(hits, samples.len());
+        let explicit = WeightedRows::new(explicit.iter().map(|row| {
+            row.iter()
+                .flatten()
+                .map(|&(key, weight)| (slot_of_key(key), weight))
+        }));
         let ordered = || order.iter().map(|&sorted| &slot_points[sorted as usize]);
         let slot_receivers: Vec<u32> = ordered().map(|point| point.receiver).collect();
         let slot_back: Vec<bool> = ordered().map(|point| point.back).collect();
@@ -493,6 +558,7 @@ impl FinalGather {
             hit_lighting_time: Duration::ZERO,
             receivers: gathering,
             hits,
+            explicit,
             slot_receivers,
             slot_back,
             slot_positions,
@@ -629,6 +695,8 @@ impl FinalGather {
             1.0 / self.rays as f32,
             &mut self.values,
         );
+        self.explicit
+            .add_into(&self.slot_radiosity, &mut self.values);
         self.gathered = true;
         if !self.correction_map.is_empty() {
             let width = context.atlas.width;
@@ -686,6 +754,7 @@ impl FinalGather {
     pub fn memory_bytes(&self) -> usize {
         self.receivers.len() * 4
             + self.hits.memory_bytes()
+            + self.explicit.memory_bytes()
             + self.slot_receivers.len() * (4 + 4 + 1 + 12 + 12 + 12 + 12 + 16)
             + self.slot_static.memory_bytes()
             + self.values.len() * 12
@@ -696,8 +765,17 @@ impl FinalGather {
 
     /// How many receivers gather and how many texels their rays hit.
     pub fn describe(&self) -> String {
+        let sampling = self.explicit.rows_with_entries();
+        let hot = if sampling > 0 {
+            format!(
+                ", {sampling} sampling hot surfaces ({} samples)",
+                self.explicit.slots.len()
+            )
+        } else {
+            String::new()
+        };
         format!(
-            "{} receivers x {} rays, {} hit texels",
+            "{} receivers x {} rays, {} hit texels{hot}",
             self.receivers.len(),
             self.rays,
             self.slot_receivers.len()
@@ -781,6 +859,208 @@ fn sum_slots(radiosity: &[Vec3A], slots: &[u32]) -> Vec3A {
         *sum += radiosity[slot as usize];
     }
     (sums[0] + sums[1]) + (sums[2] + sums[3])
+}
+
+/// Per gathering receiver, slots with weights: the hot surfaces' samples
+/// it sees, merged by slot, and their form factors.
+#[derive(Clone, Debug, Default)]
+struct WeightedRows {
+    /// Where each row starts in `slots`, and where the last ends; empty
+    /// when no row has an entry.
+    starts: Vec<usize>,
+    slots: Vec<u32>,
+    weights: Vec<f32>,
+}
+
+impl WeightedRows {
+    fn new<Row: Iterator<Item = (u32, f32)>>(rows: impl Iterator<Item = Row>) -> Self {
+        let mut matrix = Self {
+            starts: vec![0],
+            ..Self::default()
+        };
+        for row in rows {
+            for (slot, weight) in row.filter(|&(slot, _)| slot != MISS) {
+                matrix.slots.push(slot);
+                matrix.weights.push(weight);
+            }
+            matrix.starts.push(matrix.slots.len());
+        }
+        if matrix.slots.is_empty() {
+            return Self::default();
+        }
+        matrix
+    }
+
+    /// `out[row] += sum of weight * radiosity over the row's entries`.
+    fn add_into(&self, radiosity: &[Vec3A], out: &mut [Rgb]) {
+        if self.slots.is_empty() {
+            return;
+        }
+        assert_eq!(out.len() + 1, self.starts.len());
+        out.par_iter_mut()
+            .with_min_len(RECEIVERS_PER_TASK)
+            .enumerate()
+            .for_each(|(row, value)| {
+                let range = self.starts[row]..self.starts[row + 1];
+                let sum = self.slots[range.clone()]
+                    .iter()
+                    .zip(&self.weights[range])
+                    .fold(Vec3A::ZERO, |sum, (&slot, &weight)| {
+                        sum + radiosity[slot as usize] * weight
+                    });
+                *value += Rgb::from(sum);
+            });
+    }
+
+    fn rows_with_entries(&self) -> usize {
+        self.starts
+            .windows(2)
+            .filter(|range| range[1] > range[0])
+            .count()
+    }
+
+    fn memory_bytes(&self) -> usize {
+        self.starts.len() * 8 + self.slots.len() * 8
+    }
+}
+
+/// Surfaces a point or spot light stands close to: the charts the atlas
+/// refined near a light (the inside of a lamp's shade, a sconce's recess).
+/// Their direct light is tens of times the room's, over an area that
+/// few gather rays find: one receiver's rays catch it and its neighbour's
+/// miss it, the oval spots on the walls beside a shaded lamp. The gather
+/// counts their light by explicit samples instead: points spread over
+/// them at their texel density, each of which a gathering receiver that
+/// sees it weights by its form factor, found once at load; the rays skip
+/// them. That part of the gather is then smooth from receiver to receiver
+/// and costs a weighted sum over the samples' slots a frame.
+struct HotSurfaces {
+    /// Per triangle of the atlas, whether it is hot.
+    triangles: Vec<bool>,
+    samples: Vec<HotSample>,
+}
+
+/// A point on a hot triangle standing for `area` around it.
+struct HotSample {
+    triangle: u32,
+    barycentric: Vec2,
+    position: Vec3,
+    normal: Vec3,
+    area: f32,
+}
+
+/// Expected ray hits on hot surfaces from which a receiver's rays count
+/// them rather than the samples: with 64 hits the rays' noise is about
+/// an eighth of the hot light, and a receiver that close to them sees
+/// them at distances of a few samples' spacing.
+const HOT_HITS_FOR_RAYS: f32 = 64.0;
+
+/// The most samples on one hot triangle: a refined chart has at most 256
+/// texels, the most a chart near a light is given.
+const HOT_SAMPLES_PER_TRIANGLE: usize = 256;
+
+impl HotSurfaces {
+    fn of(context: &SceneContext) -> Self {
+        let atlas = &context.atlas;
+        let mesh = &context.scene.mesh;
+        let triangles: Vec<bool> = atlas
+            .triangle_texel_scales
+            .iter()
+            .map(|&scale| scale < 1.0)
+            .collect();
+        let mut samples = Vec::new();
+        for (triangle, _) in triangles.iter().enumerate().filter(|(_, &hot)| hot) {
+            let area = mesh.area(triangle);
+            let texel = atlas.metres_per_texel * atlas.triangle_texel_scales[triangle];
+            if area <= 0.0 || texel.is_nan() || texel <= 0.0 {
+                continue;
+            }
+            // About a sample a texel, stratified over the triangle.
+            let count =
+                ((area / (texel * texel)).ceil() as usize).clamp(1, HOT_SAMPLES_PER_TRIANGLE);
+            let normal = mesh.geometric_normal(triangle);
+            for index in 0..count {
+                let sample = Vec2::new(
+                    (index as f32 + 0.5) / count as f32,
+                    radical_inverse(2, index as u64) as f32,
+                );
+                let barycentric = uniform_triangle(sample);
+                samples.push(HotSample {
+                    triangle: triangle as u32,
+                    barycentric,
+                    position: mesh.point_at(triangle, barycentric),
+                    normal,
+                    area: area / count as f32,
+                });
+            }
+        }
+        Self { triangles, samples }
+    }
+
+    /// The hot samples receiver `index` sees, as (slot key, form factor),
+    /// merged by key. Past `most` samples a receiver takes every k-th
+    /// (from an offset of its own) at k times the weight, which bounds the
+    /// load's rays and a frame's sums where many hot surfaces are seen.
+    fn seen_from(
+        &self,
+        context: &SceneContext,
+        receiver_of_texel: &[u32],
+        index: usize,
+        most: usize,
+    ) -> Vec<(u64, f32)> {
+        let receivers = &context.atlas.receivers;
+        let epsilon = context.direct().ray_epsilon;
+        let normal = receivers.normals[index];
+        let origin = receivers.positions[index] + normal * epsilon;
+        let stride = self.samples.len().div_ceil(most.max(1)).max(1);
+        let first = (mix64(index as u64 ^ 0x5eed) % stride as u64) as usize;
+        let mut seen: Vec<(u64, f32)> = Vec::new();
+        for sample in self.samples.iter().skip(first).step_by(stride) {
+            let to = sample.position - origin;
+            let distance_squared = to.length_squared();
+            let distance = distance_squared.sqrt();
+            if distance <= 2.0 * epsilon {
+                continue;
+            }
+            let direction = to / distance;
+            let cos_here = normal.dot(direction);
+            let facing = -sample.normal.dot(direction);
+            if cos_here <= 0.0 || facing == 0.0 {
+                continue;
+            }
+            // A small disc's form factor, which stays finite where a
+            // receiver stands beside the sample.
+            let weight = stride as f32 * sample.area * cos_here * facing.abs()
+                / (std::f32::consts::PI * distance_squared + sample.area);
+            let ray = Ray {
+                origin,
+                direction,
+                t_max: distance - epsilon,
+            };
+            if context.bvh.occluded(&ray) {
+                continue;
+            }
+            let key = hit_key(
+                context,
+                receiver_of_texel,
+                sample.triangle,
+                sample.barycentric,
+                facing < 0.0,
+            );
+            if key != MISS_KEY {
+                seen.push((key, weight));
+            }
+        }
+        seen.sort_unstable_by_key(|&(key, _)| key);
+        seen.dedup_by(|later, kept| {
+            let same = later.0 == kept.0;
+            if same {
+                kept.1 += later.1;
+            }
+            same
+        });
+        seen
+    }
 }
 
 /// Gather ray `sample` of receiver `index`. Each receiver shifts the
@@ -1121,5 +1401,126 @@ mod tests {
             let message = auto.with_least_rays(least).unwrap_err();
             assert!(message.starts_with("final_gather_min_rays"), "{message}");
         }
+    }
+
+    /// Variant `index` of the generator's default family.
+    fn variant_context(index: usize) -> SceneContext {
+        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+        let variant = variant(VARIANTS_DEFAULT_SEED, index);
+        let folder = tempfile::tempdir().expect("temporary folder");
+        let path = variant
+            .write(&folder.path().join(variant.name()))
+            .expect("variant writes");
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        SceneContext::new(scene, ContextSettings::default()).expect("context")
+    }
+
+    /// One bounce of direct light at every `stride`-th gathering receiver,
+    /// traced ray by ray over `rays` cosine rays with the direct light at
+    /// each exact hit: what the gather estimates, with the hot surfaces
+    /// found by rays as every other surface is.
+    fn traced_one_bounce(
+        context: &SceneContext,
+        receivers: &[u32],
+        stride: usize,
+        rays: u32,
+    ) -> Vec<f32> {
+        let samples = gather_samples(rays);
+        let direct = context.direct();
+        let mesh = &context.scene.mesh;
+        let lights = &context.scene.lights;
+        receivers
+            .par_iter()
+            .step_by(stride)
+            .map(|&receiver| {
+                let mut sum = Rgb::ZERO;
+                for (index, &sample) in samples.iter().enumerate() {
+                    let ray = gather_ray(
+                        &context.atlas.receivers,
+                        receiver as usize,
+                        sample,
+                        direct.ray_epsilon,
+                        f32::INFINITY,
+                    );
+                    let Some(hit) = context.bvh.intersect(&ray) else {
+                        continue;
+                    };
+                    let triangle = hit.triangle as usize;
+                    let mut normal = mesh.geometric_normal(triangle);
+                    if normal.dot(ray.direction) > 0.0 {
+                        normal = -normal;
+                    }
+                    let position = mesh.point_at(triangle, hit.barycentric);
+                    let key = ((receiver as u64) << 32) | index as u64;
+                    sum += context.scene.albedo_at(triangle, hit.barycentric)
+                        * direct.irradiance(lights, position, normal, key);
+                }
+                relight_core::colour::luminance(sum) / samples.len() as f32
+            })
+            .collect()
+    }
+
+    /// Beside a lamp inside a shade (generated variant 39: a 7 m room, the
+    /// shade's inside refined near the light), the gather samples the
+    /// shade's hot inside instead of hitting it by chance. Against 16384
+    /// rays a receiver, traced one by one (every 16th receiver, 480):
+    /// - over all of them the gather's one bounce keeps the rays' light
+    ///   within 2 % (measured 1.008x; the rest is the slots' direct light
+    ///   read at texel points rather than at exact hits);
+    /// - over those that sample the shade, its error relative to the light
+    ///   there must stay under 0.35 of 256 plain rays' (the oval spots).
+    ///   Measured: 0.18, where 4096 plain rays give 0.20; with the
+    ///   samples switched off (rays hitting the shade, no weighted sum)
+    ///   the gather measured 0.98.
+    #[test]
+    fn hot_surfaces_beside_a_shaded_lamp_are_sampled_not_hit() {
+        let context = variant_context(39);
+        assert!(context.atlas.near_light_charts > 0);
+        let settings = FinalGatherSettings {
+            reach_texels: Some(f32::INFINITY),
+            rays: 256,
+            least_rays: LEAST_RAYS,
+        };
+        let mut gather = FinalGather::build(&context, settings, 1, false);
+        assert!(!gather.explicit.slots.is_empty());
+        gather.light_hits(&context, &context.scene.lights);
+        gather.gather(&context, |_| Rgb::ZERO, false);
+        const STRIDE: usize = 16;
+        let gathered: Vec<f32> = gather
+            .values()
+            .iter()
+            .step_by(STRIDE)
+            .map(|&value| relight_core::colour::luminance(value))
+            .collect();
+        let reference = traced_one_bounce(&context, gather.receivers(), STRIDE, 16384);
+        let by_rays = traced_one_bounce(&context, gather.receivers(), STRIDE, 256);
+        let mean = |values: &[f32]| values.iter().sum::<f32>() / values.len() as f32;
+        // Over the receivers that sample the hot surfaces (outside the
+        // shade), relative to the light there.
+        let sampled: Vec<bool> = (0..gathered.len())
+            .map(|row| {
+                let row = row * STRIDE;
+                gather.explicit.starts[row + 1] > gather.explicit.starts[row]
+            })
+            .collect();
+        let error = |values: &[f32]| {
+            let squared: f32 = values
+                .iter()
+                .zip(&reference)
+                .zip(&sampled)
+                .filter(|(_, &sampled)| sampled)
+                .map(|((value, truth), _)| ((value - truth) / truth.max(1e-6)).powi(2))
+                .sum();
+            squared.sqrt()
+        };
+        let ratio = mean(&gathered) / mean(&reference);
+        let relative_error = error(&gathered) / error(&by_rays);
+        println!(
+            "{} receivers, {} sampling the hot surfaces: gathered light {ratio:.3}x of the rays', error {relative_error:.2} of 256 rays'",
+            gathered.len(),
+            sampled.iter().filter(|&&sampled| sampled).count()
+        );
+        assert!((ratio - 1.0).abs() < 0.02, "{ratio:.3}x");
+        assert!(relative_error < 0.35, "{relative_error:.2}");
     }
 }
