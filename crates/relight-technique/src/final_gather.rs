@@ -330,7 +330,8 @@ pub struct FinalGather {
     /// The slots each gathering receiver's rays hit.
     hits: HitMatrix,
     /// The hot-surface slots each gathering receiver sees, with their form
-    /// factors (empty rows where the scene has no hot surface).
+    /// factors (no rows where the scene has no hot surface; an empty row
+    /// where the receiver sees none or its rays count them).
     explicit: WeightedRows,
     /// Per hit slot: the receiver hit and whether its back side was.
     slot_receivers: Vec<u32>,
@@ -431,7 +432,7 @@ impl FinalGather {
         let receiver_of_texel = &receiver_of_texel;
         let ray_from = &ray_from;
         let samples = &samples;
-        let hot = HotSurfaces::of(context);
+        let hot = HotSurfaces::of(context, HOT_SAMPLE_BUDGET);
         let hot = &hot;
         // Where the hot surfaces fill enough of a receiver's view that its
         // rays find them often (inside the shade), the rays answer better
@@ -444,8 +445,7 @@ impl FinalGather {
                 .par_iter()
                 .with_min_len(RECEIVERS_PER_TASK / 4)
                 .map(|&index| {
-                    let seen =
-                        hot.seen_from(context, receiver_of_texel, index as usize, samples.len());
+                    let seen = hot.seen_from(context, receiver_of_texel, index as usize);
                     let form_factor: f32 = seen.iter().map(|&(_, weight)| weight).sum();
                     (form_factor * (samples.len() as f32) < HOT_HITS_FOR_RAYS).then_some(seen)
                 })
@@ -768,7 +768,7 @@ impl FinalGather {
         let sampling = self.explicit.rows_with_entries();
         let hot = if sampling > 0 {
             format!(
-                ", {sampling} sampling hot surfaces ({} samples)",
+                ", {sampling} sampling hot surfaces ({} weighted slots)",
                 self.explicit.slots.len()
             )
         } else {
@@ -879,7 +879,7 @@ impl WeightedRows {
             ..Self::default()
         };
         for row in rows {
-            for (slot, weight) in row.filter(|&(slot, _)| slot != MISS) {
+            for (slot, weight) in row {
                 matrix.slots.push(slot);
                 matrix.weights.push(weight);
             }
@@ -930,9 +930,9 @@ impl WeightedRows {
 /// few gather rays find: one receiver's rays catch it and its neighbour's
 /// miss it, the oval spots on the walls beside a shaded lamp. The gather
 /// counts their light by explicit samples instead: points spread over
-/// them at their texel density, each of which a gathering receiver that
-/// sees it weights by its form factor, found once at load; the rays skip
-/// them. That part of the gather is then smooth from receiver to receiver
+/// them at about their texel density (fewer past `HOT_SAMPLE_BUDGET`),
+/// each of which a gathering receiver that sees it weights by its form
+/// factor, found once at load; the rays skip them. That part of the gather is then smooth from receiver to receiver
 /// and costs a weighted sum over the samples' slots a frame.
 struct HotSurfaces {
     /// Per triangle of the atlas, whether it is hot.
@@ -950,35 +950,53 @@ struct HotSample {
 }
 
 /// Expected ray hits on hot surfaces from which a receiver's rays count
-/// them rather than the samples: with 64 hits the rays' noise is about
-/// an eighth of the hot light, and a receiver that close to them sees
-/// them at distances of a few samples' spacing.
-const HOT_HITS_FOR_RAYS: f32 = 64.0;
+/// them rather than the samples: with 32 hits the rays' noise is under a
+/// fifth of the hot light, and a receiver that sees that much of them
+/// stands inside the shade, a few samples' spacing from them, where the
+/// samples' point-to-area estimate is coarse. A receiver with 64 rays
+/// needs half its view on hot surfaces.
+const HOT_HITS_FOR_RAYS: f32 = 32.0;
 
 /// The most samples on one hot triangle: a refined chart has at most 256
 /// texels, the most a chart near a light is given.
 const HOT_SAMPLES_PER_TRIANGLE: usize = 256;
 
+/// The most hot samples in a scene: every gathering receiver in front of
+/// one traces a shadow ray to it at load and sums its slot a frame. Past
+/// this the samples thin out evenly over every hot triangle (the same
+/// samples for every receiver, so the answer stays smooth), down to one
+/// a triangle.
+const HOT_SAMPLE_BUDGET: usize = 4096;
+
 impl HotSurfaces {
-    fn of(context: &SceneContext) -> Self {
+    fn of(context: &SceneContext, budget: usize) -> Self {
         let atlas = &context.atlas;
         let mesh = &context.scene.mesh;
-        let triangles: Vec<bool> = atlas
+        // A sample a texel, stratified over each triangle.
+        let wanted: Vec<(usize, f32, usize)> = atlas
             .triangle_texel_scales
             .iter()
-            .map(|&scale| scale < 1.0)
+            .enumerate()
+            .filter(|&(_, &scale)| scale < 1.0)
+            .filter_map(|(triangle, &scale)| {
+                let area = mesh.area(triangle);
+                let texel = atlas.metres_per_texel * scale;
+                let texels = area / (texel * texel);
+                // NaN and degenerate triangles stay with the rays.
+                (texels > 0.0 && texels.is_finite()).then(|| {
+                    let count = (texels.ceil() as usize).clamp(1, HOT_SAMPLES_PER_TRIANGLE);
+                    (triangle, area, count)
+                })
+            })
             .collect();
+        let total: usize = wanted.iter().map(|&(_, _, count)| count).sum();
+        let thinning = (budget as f32 / total.max(1) as f32).min(1.0);
+        let mut triangles = vec![false; mesh.triangles.len()];
         let mut samples = Vec::new();
-        for (triangle, _) in triangles.iter().enumerate().filter(|(_, &hot)| hot) {
-            let area = mesh.area(triangle);
-            let texel = atlas.metres_per_texel * atlas.triangle_texel_scales[triangle];
-            if area <= 0.0 || texel.is_nan() || texel <= 0.0 {
-                continue;
-            }
-            // About a sample a texel, stratified over the triangle.
-            let count =
-                ((area / (texel * texel)).ceil() as usize).clamp(1, HOT_SAMPLES_PER_TRIANGLE);
+        for &(triangle, area, count) in &wanted {
+            let count = ((count as f32 * thinning).round() as usize).max(1);
             let normal = mesh.geometric_normal(triangle);
+            triangles[triangle] = true;
             for index in 0..count {
                 let sample = Vec2::new(
                     (index as f32 + 0.5) / count as f32,
@@ -998,24 +1016,19 @@ impl HotSurfaces {
     }
 
     /// The hot samples receiver `index` sees, as (slot key, form factor),
-    /// merged by key. Past `most` samples a receiver takes every k-th
-    /// (from an offset of its own) at k times the weight, which bounds the
-    /// load's rays and a frame's sums where many hot surfaces are seen.
+    /// merged by key.
     fn seen_from(
         &self,
         context: &SceneContext,
         receiver_of_texel: &[u32],
         index: usize,
-        most: usize,
     ) -> Vec<(u64, f32)> {
         let receivers = &context.atlas.receivers;
         let epsilon = context.direct().ray_epsilon;
         let normal = receivers.normals[index];
         let origin = receivers.positions[index] + normal * epsilon;
-        let stride = self.samples.len().div_ceil(most.max(1)).max(1);
-        let first = (mix64(index as u64 ^ 0x5eed) % stride as u64) as usize;
         let mut seen: Vec<(u64, f32)> = Vec::new();
-        for sample in self.samples.iter().skip(first).step_by(stride) {
+        for sample in &self.samples {
             let to = sample.position - origin;
             let distance_squared = to.length_squared();
             let distance = distance_squared.sqrt();
@@ -1029,8 +1042,10 @@ impl HotSurfaces {
                 continue;
             }
             // A small disc's form factor, which stays finite where a
-            // receiver stands beside the sample.
-            let weight = stride as f32 * sample.area * cos_here * facing.abs()
+            // receiver stands beside the sample. The slots hold albedo
+            // times irradiance, so form factor times that is the
+            // irradiance the sample's area sends here.
+            let weight = sample.area * cos_here * facing.abs()
                 / (std::f32::consts::PI * distance_squared + sample.area);
             let ray = Ray {
                 origin,
@@ -1522,5 +1537,40 @@ mod tests {
         );
         assert!((ratio - 1.0).abs() < 0.02, "{ratio:.3}x");
         assert!(relative_error < 0.35, "{relative_error:.2}");
+    }
+
+    /// Thinned to any budget, the hot samples still stand for exactly the
+    /// hot triangles' area (what keeps the explicit estimate unbiased),
+    /// at most one sample a triangle past the budget.
+    #[test]
+    fn hot_samples_keep_the_hot_area_when_thinned() {
+        let context = variant_context(39);
+        let mesh = &context.scene.mesh;
+        let hot_area: f32 = context
+            .atlas
+            .triangle_texel_scales
+            .iter()
+            .enumerate()
+            .filter(|&(_, &scale)| scale < 1.0)
+            .map(|(triangle, _)| mesh.area(triangle))
+            .sum();
+        let hot_triangles = context
+            .atlas
+            .triangle_texel_scales
+            .iter()
+            .filter(|&&scale| scale < 1.0)
+            .count();
+        let full = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
+        for budget in [HOT_SAMPLE_BUDGET, 256, 1] {
+            let hot = HotSurfaces::of(&context, budget);
+            let area: f32 = hot.samples.iter().map(|sample| sample.area).sum();
+            assert!(
+                (area / hot_area - 1.0).abs() < 1e-4,
+                "{budget}: {area} of {hot_area}"
+            );
+            assert_eq!(hot.triangles, full.triangles);
+            assert!(hot.samples.len() <= budget.max(hot_triangles) + hot_triangles);
+        }
+        assert!(full.samples.len() > 256, "{} samples", full.samples.len());
     }
 }
