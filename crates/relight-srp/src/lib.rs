@@ -29,7 +29,8 @@
 //! stratified sphere directions, the texel its ray hits.
 //!
 //! Every frame: direct irradiance at the texels the probes see (plus last
-//! frame's indirect irradiance, times albedo / pi, for further bounces);
+//! frame's indirect irradiance, the final gather's where a texel gathers,
+//! times albedo / pi, for further bounces);
 //! probe projection into SH through the sample tables; per cluster the
 //! light basis vector Sigma_c V^T lambda; per receiver U_c times it,
 //! stored packed (RGB9E5) in cluster order. The lightmap is that array seen
@@ -64,6 +65,7 @@
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the probes over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
 //! | `final_gather_min_rays` | 128 | the automatic ray count's floor, which large scenes get: Sponza's 260k gathering receivers get it (see below) (run time) |
+//! | `gather_feedback` | true | with bounces, the final gather's values, where a texel gathers, feed the next bounce instead of the probes' reconstruction there; false: the reconstruction alone (the paper) (run time) |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -248,6 +250,7 @@ pub struct SrpParams {
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
     pub final_gather_min_rays: u32,
+    pub gather_feedback: bool,
     pub seed: u64,
 }
 
@@ -278,6 +281,7 @@ impl Default for SrpParams {
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
             final_gather_min_rays: 128,
+            gather_feedback: true,
             seed: 1,
         }
     }
@@ -352,6 +356,7 @@ impl SrpParams {
             probe_budget: self.probe_budget,
             specular: self.specular,
             space_rays: self.space_rays,
+            gather_feedback: self.gather_feedback,
             // validate() has checked it.
             final_gather: self
                 .final_gather_settings()
