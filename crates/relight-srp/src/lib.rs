@@ -154,12 +154,17 @@
 //!   10.3 %, camera-visible lightmap 35.9 -> 18.2 %, light 0.863 ->
 //!   0.930x (`relight converge SCENE -t srp --sweep final_gather=0,auto`);
 //!   at order 7 the corridor 6.0 -> 2.5 % and the point-lit box 5.9 ->
-//!   2.3 % over tiles. The multi-bounce feedback reads the
-//!   reconstruction, not the gather; but a gather hit on a texel that
-//!   gathers too reflects what that texel gathered, so light passed from
-//!   corner to corner keeps its near field (the first frame gathers four
-//!   times): living room tiles 9.6 -> 6.8 %, camera-visible lightmap
-//!   16.3 -> 14.3 %, light 0.932 -> 0.971x.
+//!   2.3 % over tiles. A gather hit on a texel that gathers too reflects
+//!   what that texel gathered, so light passed from corner to corner
+//!   keeps its near field: living room tiles 9.6 -> 6.8 %,
+//!   camera-visible lightmap 16.3 -> 14.3 %, light 0.932 -> 0.971x. With
+//!   `gather_feedback` (the default) the multi-bounce feedback reads the
+//!   gathered values too where a texel gathers, and the first update
+//!   gathers once a settling pass: fed the reconstruction, each bounce
+//!   carried the probes' near-field error into the next (a bright suite
+//!   lit by a spot beside a corner got 1.9 times the path tracer's light;
+//!   `relight robustness -t srp --first 88 --variants 1 --set
+//!   gather_feedback=false`). It doubles the first update on Sponza.
 //! - On Sponza the gather's own noise decides the camera-visible
 //!   lightmap's error: its 260k gathering texels get the automatic count's
 //!   floor (`final_gather_min_rays`). At 64 / 128 / 256 rays each the

@@ -77,7 +77,9 @@ pub struct Srp {
     /// order instead of at scattered lightmap texels.
     visible_in_cluster_order: Vec<[u32; 2]>,
     visible_cluster_starts: Vec<u32>,
-    /// Last reconstruction's irradiance at the probe-visible receivers.
+    /// Indirect irradiance at the probe-visible receivers that the next
+    /// bounce reflects: the last reconstruction's, or the last gather's
+    /// where the receiver gathers and `gather_feedback` is on.
     visible_indirect: Vec<Rgb>,
     /// Receiver-order copy of the lightmap, gathered within the timed
     /// update: what an engine reads each frame to fill its lightmap.
@@ -274,7 +276,9 @@ impl Srp {
     }
 
     fn gathers_feed_back(&self) -> bool {
-        self.settings.gather_feedback && self.settings.bounces > 1 && !self.final_gather.is_empty()
+        self.settings.gather_feedback
+            && self.settings.bounces > 1
+            && !self.gathered_visible.is_empty()
     }
 
     /// The lightmap slot of receiver `index`.
@@ -1032,7 +1036,8 @@ impl Technique for Srp {
                 "probe-visible feedback (cluster order)",
                 self.visible_in_cluster_order.len() * 8
                     + self.visible_cluster_starts.len() * 4
-                    + self.visible_indirect.len() * 12,
+                    + self.visible_indirect.len() * 12
+                    + self.gathered_visible.len() * 8,
             ),
             MemoryEntry::new(
                 "irradiance per receiver (RGB9E5, cluster order)",

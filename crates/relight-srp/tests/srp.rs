@@ -410,9 +410,10 @@ fn lightmap_error(reference: &[Rgb], context: &Arc<SceneContext>, params: &[(&st
 /// gather off: on this box it answers for nearly every receiver, and since
 /// its values feed the bounces the error is 5.2 % whatever the order).
 /// Measured 21.7, 11.0, 8.1 % for orders 1, 3, 7 and 21.3, 11.2, 8.5 % for
-/// 4, 8, 16 probes at 256 samples. Past 16 probes this box is on a plateau
-/// set by the transport's own noise at 256 samples per receiver, so the
-/// probe steps asserted stop there.
+/// 4, 8, 16 probes at 256 samples. The probe steps asserted stop at 16:
+/// with the gather on, before it fed the bounces, 32 and 64 probes gave
+/// 9.3 and 10.3 %, a plateau set by the transport's own noise at 256
+/// samples per receiver.
 #[test]
 fn error_falls_with_order_and_probe_count() {
     let context = context("cornell-box-point");
@@ -840,9 +841,10 @@ fn closed_boxes_within_eight_percent_over_tiles_at_order_seven() {
 /// inside the unlit room, which gets its light through the doorway after
 /// two bounces or more, and no corner seams there: over 8x8 tiles under
 /// 5 %, about twice what the defaults measure. Full size (`relight converge
-/// scenes/two-rooms/scene-unlit-room.toml -t srp`) measured 1.022x and
-/// 1.8 %; without the final gather (`--sweep final_gather=0`), 1.120x and
-/// 7.2 %. The light ratio's own noise over a whole image at 256 paths is
+/// scenes/two-rooms/scene-unlit-room.toml -t srp --sweep
+/// gather_feedback=false,true`) measured 1.013x and 1.5 %, then 0.995x and
+/// 1.4 %; without the final gather (`--sweep final_gather=0`), 1.120x and
+/// 7.2 % before that change. The light ratio's own noise over a whole image at 256 paths is
 /// well under 1 %, so its bound is the issue's.
 #[test]
 fn unlit_room_gets_the_light_that_crosses_the_doorway() {
@@ -858,16 +860,22 @@ fn unlit_room_gets_the_light_that_crosses_the_doorway() {
 /// The first update settles every bounce of a bright closed room
 /// ([`relight_technique::robustness::check_first_update_settles`]: passes
 /// stop once the light they would still add is under
-/// [`relight_technique::SETTLED_SHARE`]). Measured: 51 passes, 1.004 of
-/// what 300 more updates reach (the one-pass updates that follow settle
-/// 0.4 % lower than the first update's passes; I have not found why). A
+/// [`relight_technique::SETTLED_SHARE`]). Measured: 49 passes, 0.995 of
+/// what 300 more updates reach (1.004 before the gathered near field fed
+/// the bounces, when the one-pass updates that follow settled 0.4 % lower
+/// than the first update's passes; I have not found why). A
 /// fixed 16 passes gave 0.883 here, and 0.895x of the path tracer's light
 /// in a 4 x 2.6 x 5 m grey room of albedo 0.9 (`relight converge`).
 #[test]
 fn the_first_update_settles_the_bounces_of_a_bright_closed_room() {
     let context = relight_technique::robustness::closed_grey_room(0.9);
     let mut technique = srp(&context, &[]);
-    relight_technique::robustness::check_first_update_settles(technique.as_mut(), &context, 128);
+    let (passes, share) = relight_technique::robustness::check_first_update_settles(
+        technique.as_mut(),
+        &context,
+        128,
+    );
+    println!("{passes} passes, {share:.3} of what 300 more updates reach");
 }
 
 /// Two rooms lit by a point light inside a lampshade (1 cm solid walls,
@@ -913,12 +921,15 @@ fn rooms_lit_by_a_shaded_lamp_get_its_light() {
 /// light pointing at the floor beside a corner) of the default family.
 /// In 88 the probes put the first bounce in the lit room's corners at 2.6
 /// times the path tracer's (`relight converge` with `bounces=1
-/// final_gather=0`); the final gather corrects those receivers, but the
-/// bounces were fed the reconstruction alone, so each carried the error
-/// into the next and the unlit room got 1.904x the path tracer's light
-/// (049: 1.193x). Fed the gathered values, as the next frame is: 0.854x
-/// and 0.979x at the study's settings (`relight robustness -t srp --first
-/// 88 --variants 1`). Bound: the 0.85-1.15x in an unlit room.
+/// final_gather=0`); the final gather corrects those receivers for the
+/// image, but with `gather_feedback=false` the bounces read the
+/// reconstruction, each carried the error into the next, and the unlit
+/// rooms got 1.193x (49) and 1.904x (88) the path tracer's light. Fed the
+/// gathered values: 0.979x and 0.854x at the study's settings (`relight
+/// robustness -t srp --first 88 --variants 1`). Bound: the issue's
+/// 0.85-1.15x in an unlit room; 88 clears it by 0.004, so a change that
+/// moves it deserves a look rather than a wider bound. The switch itself
+/// is held to restoring the overshot light on 88 (over 1.5x).
 #[test]
 fn bright_suites_keep_their_bounces_in_bounds() {
     for index in [49, 88] {
@@ -931,5 +942,10 @@ fn bright_suites_keep_their_bounces_in_bounds() {
             "variant {index}: {}",
             measured.light_ratio
         );
+        if index == 88 {
+            let technique = srp(&case.context, &[("gather_feedback", "false")]);
+            let (measured, _) = case.measure_as_the_study_does(technique.as_ref());
+            assert!(measured.light_ratio > 1.5, "{}", measured.light_ratio);
+        }
     }
 }
