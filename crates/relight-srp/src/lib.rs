@@ -162,7 +162,7 @@
 //!   gathered values too where a texel gathers, and the first update
 //!   gathers once a settling pass: fed the reconstruction, each bounce
 //!   carried the probes' near-field error into the next (a bright suite
-//!   lit by a spot beside a corner got 1.9 times the path tracer's light;
+//!   lit by a spot beside a wall got 1.9 times the path tracer's light;
 //!   `relight robustness -t srp --first 88 --variants 1 --set
 //!   gather_feedback=false`). It doubles the first update on Sponza.
 //! - On Sponza the gather's own noise decides the camera-visible

@@ -297,7 +297,7 @@ impl Srp {
     /// next bounce (the next pass, the next frame) starts from the
     /// corrected near field, as PIC's surfels read it. Fed the
     /// reconstruction alone, each bounce carried its near-field error
-    /// into the next: a spot light on the floor beside a corner, whose
+    /// into the next: a spot light aimed at the floor beside a wall, whose
     /// first bounce the probes put at 2.6 times the path tracer's in the
     /// corners, lit a bright two-room suite 1.9 times too brightly.
     fn gather_near_field(&mut self, hits_lit: bool) {

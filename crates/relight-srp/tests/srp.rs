@@ -918,7 +918,7 @@ fn rooms_lit_by_a_shaded_lamp_get_its_light() {
 
 /// Bright two-room suites whose bounces the probes' near field overshot:
 /// variants 49 (albedo 0.69, a shaded lamp) and 88 (albedo 0.86, a spot
-/// light pointing at the floor beside a corner) of the default family.
+/// light pointing at the floor 0.44 m from a wall) of the default family.
 /// In 88 the probes put the first bounce in the lit room's corners at 2.6
 /// times the path tracer's (`relight converge` with `bounces=1
 /// final_gather=0`); the final gather corrects those receivers for the
