@@ -878,6 +878,30 @@ fn the_first_update_settles_the_bounces_of_a_bright_closed_room() {
     println!("{passes} passes, {share:.3} of what 300 more updates reach");
 }
 
+/// Variant `index` of the generator's default family and SRP's figures on
+/// it with `params`, as `relight robustness` measures them.
+fn srp_on_variant(
+    index: usize,
+    params: &[(&str, &str)],
+) -> (
+    relight_render::robustness::VariantCase,
+    relight_render::convergence::Measurement,
+) {
+    let case =
+        relight_render::robustness::VariantCase::default_family(index).expect("the variant loads");
+    let technique = srp(&case.context, params);
+    let (measured, _) = case.measure_as_the_study_does(technique.as_ref());
+    (case, measured)
+}
+
+/// The bound on an unlit room's light in view: 0.85-1.15x.
+fn assert_unlit_light_in_bounds(index: usize, light_ratio: f64) {
+    assert!(
+        (0.85..=1.15).contains(&light_ratio),
+        "variant {index}: {light_ratio}"
+    );
+}
+
 /// Two rooms lit by a point light inside a lampshade (1 cm solid walls,
 /// 32 x 28 x 32 cm, open below), seen from the unlit room: variants 1 and
 /// 28 of the generator's default family. Most of the light that leaves a
@@ -897,19 +921,12 @@ fn the_first_update_settles_the_bounces_of_a_bright_closed_room() {
 #[test]
 fn rooms_lit_by_a_shaded_lamp_get_its_light() {
     for index in [1, 28] {
-        let case = relight_render::robustness::VariantCase::default_family(index)
-            .expect("the variant loads");
+        let (case, measured) = srp_on_variant(index, &[]);
         assert!(
             case.context.atlas.near_light_charts > 0,
             "variant {index}: the shade is refined"
         );
-        let technique = srp(&case.context, &[]);
-        let (measured, _) = case.measure_as_the_study_does(technique.as_ref());
-        assert!(
-            (0.85..=1.15).contains(&measured.light_ratio),
-            "variant {index}: {}",
-            measured.light_ratio
-        );
+        assert_unlit_light_in_bounds(index, measured.light_ratio);
         if index == 28 {
             assert!(measured.image_tiles < 0.12, "{}", measured.image_tiles);
         }
@@ -933,15 +950,8 @@ fn rooms_lit_by_a_shaded_lamp_get_its_light() {
 #[test]
 fn bright_suites_keep_their_bounces_in_bounds() {
     for index in [49, 88] {
-        let case = relight_render::robustness::VariantCase::default_family(index)
-            .expect("the variant loads");
-        let technique = srp(&case.context, &[]);
-        let (measured, _) = case.measure_as_the_study_does(technique.as_ref());
-        assert!(
-            (0.85..=1.15).contains(&measured.light_ratio),
-            "variant {index}: {}",
-            measured.light_ratio
-        );
+        let (case, measured) = srp_on_variant(index, &[]);
+        assert_unlit_light_in_bounds(index, measured.light_ratio);
         if index == 88 {
             let technique = srp(&case.context, &[("gather_feedback", "false")]);
             let (measured, _) = case.measure_as_the_study_does(technique.as_ref());

@@ -138,15 +138,17 @@ fn texel_point(context: &SceneContext, triangle: u32, texel: usize) -> (Vec3, Ve
     )
 }
 
-/// The slot key of a point on `triangle` seen from its `back` or front:
-/// its texel's receiver where the point lies on that receiver's plane
-/// within a texel of it, else a point of its own on the triangle;
+/// The slot key of a point on `triangle` (whose geometric normal is
+/// `normal`, which every caller has at hand) seen from its `back` or
+/// front: its texel's receiver where the point lies on that receiver's
+/// plane within a texel of it, else a point of its own on the triangle;
 /// `MISS_KEY` for a texel no receiver covers.
 fn hit_key(
     context: &SceneContext,
     receiver_of_texel: &[u32],
     triangle: u32,
     barycentric: Vec2,
+    normal: Vec3,
     back: bool,
 ) -> u64 {
     let atlas = &context.atlas;
@@ -171,7 +173,6 @@ fn hit_key(
     // the texel's centre. Where that triangle turns away from the one hit
     // or lies elsewhere (a corner, a moulding, a chart's fold), its direct
     // light is not the hit's, so the hit gets a point of its own.
-    let normal = context.scene.mesh.geometric_normal(triangle as usize);
     let (point, _) = texel_point(context, triangle, texel);
     let elsewhere = point.distance(receivers.positions[receiver]) > atlas.metres_per_texel;
     if elsewhere || normal.dot(receivers.normals[receiver]) < SAME_PLANE_COS {
@@ -445,7 +446,7 @@ impl FinalGather {
                 .par_iter()
                 .with_min_len(RECEIVERS_PER_TASK / 4)
                 .map(|&index| {
-                    let seen = hot.seen_from(context, receiver_of_texel, index as usize);
+                    let seen = hot.seen_from(context, receiver_of_texel, index as usize, epsilon);
                     let form_factor: f32 = seen.iter().map(|&(_, weight)| weight).sum();
                     (form_factor * (samples.len() as f32) < HOT_HITS_FOR_RAYS).then_some(seen)
                 })
@@ -474,6 +475,7 @@ impl FinalGather {
                         receiver_of_texel,
                         hit.triangle,
                         hit.barycentric,
+                        normal,
                         back,
                     )
                 })
@@ -1022,9 +1024,9 @@ impl HotSurfaces {
         context: &SceneContext,
         receiver_of_texel: &[u32],
         index: usize,
+        epsilon: f32,
     ) -> Vec<(u64, f32)> {
         let receivers = &context.atlas.receivers;
-        let epsilon = context.direct().ray_epsilon;
         let normal = receivers.normals[index];
         let origin = receivers.positions[index] + normal * epsilon;
         let mut seen: Vec<(u64, f32)> = Vec::new();
@@ -1060,6 +1062,7 @@ impl HotSurfaces {
                 receiver_of_texel,
                 sample.triangle,
                 sample.barycentric,
+                sample.normal,
                 facing < 0.0,
             );
             if key != MISS_KEY {
