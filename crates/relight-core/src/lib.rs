@@ -1,6 +1,6 @@
 //! Shared math for every relight crate: colour, random numbers and sampling,
-//! real spherical harmonics, and principal components of long f16 vectors
-//! (the techniques' transport compression).
+//! real spherical harmonics, solid angles of small patches, and principal
+//! components of long f16 vectors (the techniques' transport compression).
 //!
 //! Nothing here knows about scenes or rays. Data flows one way through relight
 //! (scene, then bake, then per-frame update, then shading), and this crate sits
@@ -12,6 +12,7 @@ pub mod colour;
 pub mod pca;
 pub mod sampling;
 pub mod sh;
+pub mod solid_angle;
 
 pub use colour::{luminance, Rgb, Rgb9e5};
 pub use glam::{Affine3A, Mat3, Mat4, UVec2, Vec2, Vec3, Vec3A, Vec4};

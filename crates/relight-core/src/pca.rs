@@ -121,6 +121,23 @@ pub fn principal_components(
     row_length: usize,
     rank: usize,
 ) -> Result<PrincipalComponents, PcaError> {
+    principal_components_weighted(rows, row_count, row_length, rank, None)
+}
+
+/// [`principal_components`] minimising the squared error of each row
+/// times its weight (`row_weights`, positive; `None`: all 1), for rows
+/// that will be used at such different scales that an error in one
+/// matters hundreds of times more than in another. The components of the
+/// weighted rows are found and each row's coefficients divided by its
+/// weight; `captured` is the weighted energy's share. Weights at most 1
+/// keep the basis within the magnitude of the rows, as f16 needs.
+pub fn principal_components_weighted(
+    rows: &[f16],
+    row_count: usize,
+    row_length: usize,
+    rank: usize,
+    row_weights: Option<&[f64]>,
+) -> Result<PrincipalComponents, PcaError> {
     use faer::diag::Diag;
     use faer::linalg::evd::{
         self_adjoint_evd, self_adjoint_evd_scratch, ComputeEigenvectors, SelfAdjointEvdParams,
@@ -128,7 +145,16 @@ pub fn principal_components(
     use faer::{dyn_stack::MemBuffer, dyn_stack::MemStack, Mat, Par, Spec};
 
     let rank = rank.min(row_count);
-    let lower = gram(rows, row_count, row_length);
+    let mut lower = gram(rows, row_count, row_length);
+    let weight = |row: usize| row_weights.map_or(1.0, |weights| weights[row]);
+    if let Some(weights) = row_weights {
+        assert_eq!(weights.len(), row_count);
+        for i in 0..row_count {
+            for j in 0..=i {
+                lower[i * row_count + j] *= weights[i] * weights[j];
+            }
+        }
+    }
     let matrix = Mat::<f64>::from_fn(row_count, row_count, |i, j| {
         lower[i.max(j) * row_count + i.min(j)]
     });
@@ -154,6 +180,9 @@ pub fn principal_components(
 
     // faer orders eigenvalues ascending; the components are the last ones.
     let trace: f64 = (0..row_count).map(|i| lower[i * row_count + i]).sum();
+    // basis_j = sum_k V[k, j] weight_k row_k; row_k ~ sum_j (V[k, j] /
+    // weight_k) basis_j.
+    let mut basis_weights = vec![0.0f32; row_count * rank];
     let mut coefficients = vec![0.0f32; row_count * rank];
     let mut captured = 0.0;
     for j in 0..rank {
@@ -170,7 +199,13 @@ pub fn principal_components(
         }
         let sign = if largest < 0.0 { -1.0 } else { 1.0 };
         for k in 0..row_count {
-            coefficients[k * rank + j] = (sign * eigenvectors[(k, column)]) as f32;
+            let value = sign * eigenvectors[(k, column)];
+            basis_weights[k * rank + j] = (value * weight(k)) as f32;
+            coefficients[k * rank + j] = if weight(k) > 0.0 {
+                (value / weight(k)) as f32
+            } else {
+                0.0
+            };
         }
     }
     let captured = if trace > 0.0 { captured / trace } else { 1.0 };
@@ -203,7 +238,7 @@ pub fn principal_components(
             for k in 0..row_count {
                 let row = &converted[k * width..(k + 1) * width];
                 for j in 0..rank {
-                    let weight = coefficients[k * rank + j];
+                    let weight = basis_weights[k * rank + j];
                     if weight == 0.0 {
                         continue;
                     }
@@ -303,6 +338,27 @@ mod tests {
                 assert!((one[i * row_count + j] - direct).abs() < 1e-6 * direct.abs().max(1.0));
             }
         }
+    }
+
+    /// Weights trade the rows' errors: two unrelated rows and rank 1 keep
+    /// the row of the larger weight, whichever has more energy, and the
+    /// coefficients still reproduce it at its own scale.
+    #[test]
+    fn weights_choose_which_rows_the_basis_keeps() {
+        let length = 64;
+        let mut rows = vec![0.0f32; 2 * length];
+        for column in 0..length {
+            rows[column] = if column < 32 { 1.0 } else { 0.0 };
+            rows[length + column] = if column < 32 { 0.0 } else { 0.25 };
+        }
+        let rows = to_f16(&rows);
+        let unweighted = principal_components(&rows, 2, length, 1).unwrap();
+        assert!(unweighted.basis[0].to_f32().abs() > 0.5);
+        let weighted =
+            principal_components_weighted(&rows, 2, length, 1, Some(&[0.01, 1.0])).unwrap();
+        let kept = |column: usize| weighted.coefficients[1] * weighted.basis[column].to_f32();
+        assert!(kept(0).abs() < 1e-3, "{}", kept(0));
+        assert!((kept(40) - 0.25).abs() < 1e-3, "{}", kept(40));
     }
 
     /// Truncation keeps the leading energy: a strong pattern plus weak noise

@@ -2,23 +2,30 @@
 //! Light Maps Dynamic"), a lightmap made dynamic by precomputed light paths.
 //!
 //! Data flow. Bake: entry points are sampled on all surfaces in proportion
-//! to area (Halton, low discrepancy; weighted by the lightmap's density
-//! where it coarsens outside the scene's detail region, each entry then
-//! standing for its own area) and clustered by position and normal
-//! (k-means++ seeding, Lloyd iterations); from each entry point quasi-random
-//! light paths (cosine directions, Russian roulette by albedo luminance,
-//! equations 1 to 3) leave virtual point lights, and every lightmap receiver
-//! (the paper's exit points) gathers from them by shadow rays, assuming unit
-//! irradiance at the entry point. The result, summed per cluster, is one
-//! pane per cluster; by default the panes are then compressed to their
-//! leading principal components (`rank` basis panes and a coefficient per
-//! cluster and component), stored as f16 RGB. Every frame: the shared
-//! direct-light service gives each entry point's irradiance, a cluster's
-//! weight is their average weighted by each entry's share of the cluster
-//! pane's light (fixed by the bake), the top-K clusters (or all) are
-//! selected, and their panes times their weights sum into the indirect
-//! lightmap (with compression, the selected weights fold into one weight per
-//! basis pane first), which is dilated and sampled bilinearly.
+//! to area (Halton, low discrepancy; weighted by the lightmap's texel
+//! density, which coarsens outside the scene's detail region and refines
+//! on small charts near lights, each entry then standing for its own area;
+//! an eighth of them kept for the surfaces that face a light of the scene
+//! file within a few entry spacings of it) and clustered by position and
+//! normal (k-means++ seeding, Lloyd iterations, an entry joining only a
+//! cluster whose anchor it sees from the front); from each entry point
+//! quasi-random light paths (cosine directions, Russian roulette by albedo
+//! luminance, equations 1 to 3; more of them from entries that the scene
+//! file's lights make bright) leave virtual point lights, and every
+//! lightmap receiver (the paper's exit points) gathers from them by shadow
+//! rays, assuming unit irradiance at the entry point. The result, summed
+//! per cluster, is one pane per cluster; by default the panes are then
+//! compressed to their leading principal components (`rank` basis panes
+//! and a coefficient per cluster and component, each pane's errors
+//! weighted by its light under the scene file's lights), stored as f16
+//! RGB. Every frame: the shared direct-light service gives each entry
+//! point's irradiance (a point light's averaged over the patch the entry
+//! stands for), a cluster's weight is their average weighted by each
+//! entry's share of the cluster pane's light (fixed by the bake), the
+//! top-K clusters (or all) are selected, and their panes times their
+//! weights sum into the indirect lightmap (with compression, the selected
+//! weights fold into one weight per basis pane first), which is dilated
+//! and sampled bilinearly.
 //!
 //! | parameter | default | meaning |
 //! |---|---|---|
@@ -135,12 +142,27 @@
 //!   The share is of light over the surface: each pane point's light is
 //!   weighted by the area its texel stands for, since texels near a light
 //!   are finer (`lightmap.refine_near_lights`).
-//! - PRM lights the rooms of shaded lamps up to four times too brightly
-//!   (`relight robustness -t prm`, the variants with a light in a shade).
-//!   The likely cause, not yet confirmed: a cluster whose entries'
-//!   irradiance differs a hundredfold (an entry inside the shade beside
-//!   entries on the ceiling around it) lends the hot entry's irradiance
-//!   to the others' paths. Not fixed.
+//! - A lamp beside a wall, in a corner or in a shade heats a few square
+//!   decimetres around it hundreds of times brighter than the room, and
+//!   four things about those few entries decided the light of whole rooms
+//!   (`relight robustness -t prm`: unlit rooms of two-room suites 0.67x
+//!   to 3.9x of the path tracer's). A cluster joined them to entries whose
+//!   light goes elsewhere (the same wall past a partition, a doorway's
+//!   jamb with the shade's normal), and the pane spread their light into
+//!   the next room: clusters now hold only entries that see each other's
+//!   front, and entries alike to no cluster near them get one of their own
+//!   (`cluster_entries`). Entries spaced like the room's fell near the
+//!   lamp by chance and counted 0.85-1.05 of its flux: an eighth of the
+//!   entries now cover the surfaces near each light of the scene file, and
+//!   a point light's irradiance is averaged over each entry's patch, so an
+//!   entry 2 cm from a lamp does not read 1/d^2. Their four paths each
+//!   decided where most of the light went: entries trace paths in
+//!   proportion to their flux under the scene file's lights, up to 16
+//!   times as many. And the compression spent its components on large dim
+//!   panes, so the small hot panes came back as blotches over the room,
+//!   some negative: each pane's errors now count by its light. The lights
+//!   are those of the scene file: one moved far from where the file put
+//!   it is still unbiased but noisier near its new place.
 //! - Near-field light is sampled only as densely as the entry points
 //!   (about 1.4 m apart on Sponza at 4096): receivers within a few tenths
 //!   of a metre of a lit surface (corners, column bases) got too little

@@ -270,11 +270,12 @@ impl Technique for Prm {
         self.timings.time("entry irradiance", || {
             let direct =
                 DirectLight::new(&context.scene, &context.bvh, &context.emitters, settings);
-            entry_static.irradiance_batch(
+            entry_static.irradiance_batch_over_footprints(
                 &direct,
                 frame.lights,
                 &bake.entry_positions,
                 &bake.entry_normals,
+                &bake.entry_areas,
                 entry_irradiance,
             );
         });

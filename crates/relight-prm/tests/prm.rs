@@ -133,13 +133,13 @@ fn corridor_converges_with_entry_points() {
     // The paper's 256 clusters, all used, stored uncompressed. 8192 paths
     // keep the reference's noise (4.3 % at 2048) from eating the margin.
     // Virtual lights sample near-field light only as densely as the entry
-    // points: at the default 4096 the corridor's wall junctions and the
-    // boxes' contact with the floor get too little (corner receivers 0.83x
-    // the path tracer's light, relight converge scenes/corridor/scene.toml
-    // -t prm --set rank=0 --set top_k=0 --sweep entries=4096,16384), and the
-    // lightmap errs by about 17 %. Four times the entry points (half the
-    // disc guard's radius) must bring it under the 15 % and cut it
-    // by a fifth: a bias that more entry points did not lower would fail.
+    // points, and the corridor's two lights hang 10-20 cm under its
+    // ceiling: with entries spaced like the rest of the surface, the
+    // lightmap erred by about 17 % at 4096 entries (this test's bounds
+    // were 18 % and, at 16384, 15 %). With an eighth of the entries near the lights and their paths
+    // traced by flux: 5.1 % and 4.9 % against the reference's 2.0 % noise.
+    // Bounds: 8 %, the boxes' bound, for both, and four times the entries
+    // no worse (a tenth for the two bakes' own noise).
     let (errors, noise) = lightmap_errors(
         "corridor",
         64,
@@ -153,9 +153,9 @@ fn corridor_converges_with_entry_points() {
         "corridor, 256 clusters, all used: 4096 entries {:.4}, 16384 entries {:.4}; reference noise {noise:.4}",
         errors[0], errors[1]
     );
-    assert!(errors[0] < 0.18, "4096 entries: {}", errors[0]);
-    assert!(errors[1] < 0.15, "16384 entries: {}", errors[1]);
-    assert!(errors[1] < 0.8 * errors[0], "{errors:?}");
+    assert!(errors[0] < 0.08, "4096 entries: {}", errors[0]);
+    assert!(errors[1] < 0.08, "16384 entries: {}", errors[1]);
+    assert!(errors[1] < 1.1 * errors[0], "{errors:?}");
 }
 
 #[test]
@@ -172,12 +172,25 @@ fn every_cluster_receives_entry_points() {
         let bake = PrmBake::build(&context, &params, &NoProgress).unwrap();
         let sizes = bake.cluster_sizes();
         let empty = sizes.iter().filter(|&&size| size == 0).count();
-        let largest = *sizes.iter().max().unwrap();
-        eprintln!("{scene}: {empty} empty clusters, largest {largest} entries");
+        let mut areas = vec![0.0f64; bake.cluster_count];
+        for (&cluster, &area) in bake.entry_clusters.iter().zip(&bake.entry_areas) {
+            areas[cluster as usize] += area as f64;
+        }
+        let total: f64 = areas.iter().sum();
+        let largest = areas.iter().copied().fold(0.0, f64::max) / total;
+        eprintln!(
+            "{scene}: {empty} empty clusters, the largest {:.2} % of the surface ({} entries)",
+            largest * 100.0,
+            sizes.iter().max().unwrap()
+        );
         assert_eq!(empty, 0, "{scene}");
-        // 16 entries per cluster on average; k-means on even Halton points
-        // stays within a few times that.
-        assert!(largest <= 64, "{scene}: largest cluster {largest}");
+        // 1/256 of the surface per cluster on average; k-means on even
+        // Halton points stays within a few times that, and an entry that
+        // sees none of its nearest clusters' anchors, or a merge that frees
+        // a cluster for such entries, can double one. By area, not count:
+        // the entries near a light are dense, and its few square metres
+        // are one cluster of hundreds (two-rooms' ceiling above the lamp).
+        assert!(largest <= 8.0 / 256.0, "{scene}: largest cluster {largest}");
     }
 }
 
@@ -705,4 +718,30 @@ fn a_hidden_second_ceiling_takes_no_pane_points_and_leaves_no_blotch() {
     // layer's charts in the atlas: measured 0.97-1.03x; with pane points
     // on the hidden layer 0.69-1.01x.
     assert!(worst.0 > 0.85 && worst.1 < 1.15, "{worst:?}");
+}
+
+/// Two-room suites of the robustness study's default family, seen from
+/// the unlit room: a lamp in a shade (variant 1), 12 cm from the corner
+/// where the partition meets an outer wall (7) and 10 cm from a corner
+/// (10). Measured at the study's settings (`relight robustness -t prm
+/// --first N --variants 1`): before, 3.92x, 2.88x and 0.67x of the path
+/// tracer's light; 0.95x, 1.03x and 1.05x once clusters hold only entries
+/// that see each other from the front, the entries near a lamp are dense
+/// and trace paths by their flux, and the compression weighs each pane by
+/// its light. Bound: the 0.85-1.15x; the light in view is an
+/// image mean, far less noisy than the references' tiles (39, 23 and
+/// 31 % here).
+#[test]
+fn unlit_rooms_beside_a_lamp_get_its_light() {
+    for index in [1, 7, 10] {
+        let case = relight_render::robustness::VariantCase::default_family(index)
+            .expect("the variant loads");
+        let prm = baked_and_updated(&case.context);
+        let (measured, _) = case.measure_as_the_study_does(prm.as_ref());
+        assert!(
+            (0.85..=1.15).contains(&measured.light_ratio),
+            "variant {index}: {}",
+            measured.light_ratio
+        );
+    }
 }

@@ -13,6 +13,7 @@ use crate::bvh::{Bvh, Ray, NO_OCCLUDER};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, SampleStream};
+use relight_core::solid_angle::mean_cosine_over_square;
 use relight_core::{luminance, Rgb};
 use relight_scene::{Light, Scene};
 
@@ -113,6 +114,29 @@ impl StaticDirect {
     ) {
         let fixed = self.at(direct, points, normals);
         direct.irradiance_batch_over_static(lights, points, normals, fixed, irradiance);
+    }
+
+    /// [`DirectLight::irradiance_batch_over_footprints`] at `points` (the
+    /// same points at every call), tracing the static light only the first
+    /// time.
+    pub fn irradiance_batch_over_footprints(
+        &mut self,
+        direct: &DirectLight,
+        lights: &[Light],
+        points: &[Vec3],
+        normals: &[Vec3],
+        footprint_areas: &[f32],
+        irradiance: &mut [Rgb],
+    ) {
+        let fixed = self.at(direct, points, normals);
+        direct.irradiance_batch_over_footprints(
+            lights,
+            points,
+            normals,
+            footprint_areas,
+            fixed,
+            irradiance,
+        );
     }
 
     pub fn memory_bytes(&self) -> usize {
@@ -266,22 +290,25 @@ impl<'a> DirectLight<'a> {
         cache: &mut ShadowCache,
     ) -> Rgb {
         let origin = point + normal * self.ray_epsilon;
-        let irradiance = self.punctual_part(lights, origin, normal, cache);
+        let irradiance = self.punctual_part(lights, origin, normal, 0.0, cache);
         self.static_part(irradiance, origin, normal, point_key, cache)
     }
 
+    /// `footprint`: see [`Self::irradiance_batch_over_footprints`]; 0 for
+    /// the light at the point itself.
     fn punctual_part(
         &self,
         lights: &[Light],
         origin: Vec3,
         normal: Vec3,
+        footprint: f32,
         cache: &mut ShadowCache,
     ) -> Rgb {
         let mut irradiance = Rgb::ZERO;
         let mut uncached = NO_OCCLUDER;
         for (index, light) in lights.iter().enumerate() {
             let occluder = cache.lights.get_mut(index).unwrap_or(&mut uncached);
-            irradiance += self.punctual(light, origin, normal, occluder);
+            irradiance += self.punctual(light, origin, normal, footprint, occluder);
         }
         irradiance
     }
@@ -350,7 +377,44 @@ impl<'a> DirectLight<'a> {
         assert_eq!(points.len(), static_irradiance.len());
         self.batch(points, normals, irradiance, |index, cache| {
             let origin = points[index] + normals[index] * self.ray_epsilon;
-            self.punctual_part(lights, origin, normals[index], cache) + static_irradiance[index]
+            self.punctual_part(lights, origin, normals[index], 0.0, cache)
+                + static_irradiance[index]
+        });
+    }
+
+    /// [`Self::irradiance_batch_over_static`] with each point's punctual
+    /// light averaged over a square of `footprint_areas[i]` (m^2) around it
+    /// in its plane ([`mean_cosine_over_square`]), for points that each
+    /// stand for a patch of surface: a point light a few centimetres from
+    /// such a point gives it the patch's mean irradiance, bounded, not the
+    /// 1/d^2 value at its centre. Visibility is still the centre's shadow
+    /// ray; suns are unchanged.
+    pub fn irradiance_batch_over_footprints(
+        &self,
+        lights: &[Light],
+        points: &[Vec3],
+        normals: &[Vec3],
+        footprint_areas: &[f32],
+        static_irradiance: Option<&[Rgb]>,
+        irradiance: &mut [Rgb],
+    ) {
+        assert_eq!(points.len(), footprint_areas.len());
+        if let Some(static_irradiance) = static_irradiance {
+            assert_eq!(points.len(), static_irradiance.len());
+        }
+        self.batch(points, normals, irradiance, |index, cache| {
+            let origin = points[index] + normals[index] * self.ray_epsilon;
+            let punctual = self.punctual_part(
+                lights,
+                origin,
+                normals[index],
+                footprint_areas[index],
+                cache,
+            );
+            match static_irradiance {
+                Some(static_irradiance) => punctual + static_irradiance[index],
+                None => self.static_part(punctual, origin, normals[index], index as u64, cache),
+            }
         });
     }
 
@@ -389,12 +453,19 @@ impl<'a> DirectLight<'a> {
             });
     }
 
-    fn punctual(&self, light: &Light, origin: Vec3, normal: Vec3, occluder: &mut u32) -> Rgb {
+    fn punctual(
+        &self,
+        light: &Light,
+        origin: Vec3,
+        normal: Vec3,
+        footprint: f32,
+        occluder: &mut u32,
+    ) -> Rgb {
         match *light {
             Light::Point {
                 position,
                 intensity,
-            } => self.point_light(origin, normal, position, intensity, 1.0, occluder),
+            } => self.point_light(origin, normal, position, intensity, footprint, occluder),
             Light::Spot {
                 position,
                 direction,
@@ -411,7 +482,14 @@ impl<'a> DirectLight<'a> {
                 if falloff <= 0.0 {
                     return Rgb::ZERO;
                 }
-                self.point_light(origin, normal, position, intensity, falloff, occluder)
+                self.point_light(
+                    origin,
+                    normal,
+                    position,
+                    intensity * falloff,
+                    footprint,
+                    occluder,
+                )
             }
             Light::Directional {
                 direction,
@@ -443,7 +521,7 @@ impl<'a> DirectLight<'a> {
         normal: Vec3,
         position: Vec3,
         intensity: Rgb,
-        scale: f32,
+        footprint: f32,
         occluder: &mut u32,
     ) -> Rgb {
         let offset = position - origin;
@@ -455,8 +533,13 @@ impl<'a> DirectLight<'a> {
         if !self.visible(origin, offset, occluder) {
             return Rgb::ZERO;
         }
-        // E = I cos(theta) / d^2, with cos = n.offset / d.
-        intensity * (scale * cosine / (distance_squared * distance_squared.sqrt()))
+        let geometry = if footprint > 0.0 {
+            mean_cosine_over_square(offset, normal, footprint)
+        } else {
+            // E = I cos(theta) / d^2, with cos = n.offset / d.
+            cosine / (distance_squared * distance_squared.sqrt())
+        };
+        intensity * geometry
     }
 
     /// Shadow ray from `origin` to `origin + offset`, stopping just short of
@@ -655,6 +738,57 @@ mod tests {
             let below = service.irradiance(std::slice::from_ref(&light), point, -Vec3::Y, 0);
             assert_eq!(below, Rgb::ZERO);
         }
+    }
+
+    /// A point light 2 cm above the floor: a point reads I / d^2 = 2500 I,
+    /// a point standing for a 20 x 20 cm patch reads the patch's mean, the
+    /// square's solid angle over its area (4 asin(s^2 / (s^2 + 4 h^2)) /
+    /// s^2 on its axis, about 121 I). Far from the light both agree, and a
+    /// shadowed point reads nothing either way.
+    #[test]
+    fn footprints_average_a_point_light_over_their_patch() {
+        let scene = floor_scene(Some((1.0, 0.1, Rgb::ZERO)));
+        let bvh = bvh_of(&scene);
+        let emitters = Emitters::from_scene(&scene);
+        let service = DirectLight::new(&scene, &bvh, &emitters, DirectSettings::default());
+        let intensity = Rgb::new(4.0, 2.0, 1.0);
+        let lights = [Light::Point {
+            position: Vec3::new(0.0, 0.02, 0.0),
+            intensity,
+        }];
+        let points = [
+            Vec3::ZERO,
+            Vec3::new(0.9, 0.0, 0.0),
+            Vec3::new(0.0, 1.5, 0.0),
+        ];
+        let normals = [Vec3::Y, Vec3::Y, -Vec3::Y];
+        let mut patch = [Rgb::ZERO; 3];
+        let mut point = [Rgb::ZERO; 3];
+        service.irradiance_batch_over_footprints(
+            &lights, &points, &normals, &[0.04; 3], None, &mut patch,
+        );
+        service.irradiance_batch(&lights, &points, &normals, &mut point);
+        let side = 0.2f32;
+        let height = 0.02f32;
+        let mean =
+            4.0 * (side * side / (side * side + 4.0 * height * height)).asin() / (side * side);
+        assert!(
+            (patch[0].x / (4.0 * mean) - 1.0).abs() < 1e-3,
+            "{}",
+            patch[0]
+        );
+        // The shadow ray's origin sits 4e-5 m off the floor: 0.4 % nearer.
+        assert!((point[0].x / (4.0 / (height * height)) - 1.0).abs() < 1e-2);
+        // 0.9 m out the patch is 0.2 m across: the two differ by about 2 %.
+        assert!(
+            (patch[1].x / point[1].x - 1.0).abs() < 0.05,
+            "{} {}",
+            patch[1],
+            point[1]
+        );
+        // The (dark) emissive square at 1 m hides the light from above.
+        assert_eq!(patch[2], Rgb::ZERO);
+        assert_eq!(point[2], Rgb::ZERO);
     }
 
     #[test]
