@@ -124,13 +124,14 @@ pub fn principal_components(
     principal_components_weighted(rows, row_count, row_length, rank, None)
 }
 
-/// [`principal_components`] minimising the squared error of each row
-/// times its weight (`row_weights`, positive; `None`: all 1), for rows
-/// that will be used at such different scales that an error in one
-/// matters hundreds of times more than in another. The components of the
-/// weighted rows are found and each row's coefficients divided by its
-/// weight; `captured` is the weighted energy's share. Weights at most 1
-/// keep the basis within the magnitude of the rows, as f16 needs.
+/// [`principal_components`] minimising the sum over rows of the squared
+/// error times the row's weight squared (`row_weights`, positive and
+/// finite; `None`: all 1): for rows that will be used at scales so
+/// different that an error in one matters hundreds of times more than in
+/// another, the weight being that scale. The components of the weighted
+/// rows are found and each row's coefficients divided by its weight;
+/// `captured` is the weighted energy's share. Weights at most 1 keep the
+/// basis within the magnitude of the rows, as f16 needs.
 pub fn principal_components_weighted(
     rows: &[f16],
     row_count: usize,

@@ -111,7 +111,7 @@ pub fn estimate(
         lights += vertices.len() as u64;
         // One closest-hit ray leaves every vertex but the last of a path.
         path_rays += (vertices.len() as u64).max(1) - 1
-            + (params.paths_per_entry * entries.path_factors[entry]) as u64;
+            + params.paths_per_entry as u64 * entries.path_factors[entry] as u64;
         for light in &vertices {
             for index in (0..receiver_count).step_by(receiver_stride) {
                 let offset = light.position - targets.positions[index];
@@ -131,7 +131,7 @@ pub fn estimate(
         }
     }
     let own_share = shard.range(params.clusters as usize).len() as f64 / params.clusters as f64;
-    let own_entries = params.entries as f64 * own_share;
+    let own_entries = entry_count as f64 * own_share;
     let lights_per_entry = lights as f64 / pilots.max(1) as f64;
     let facing_share = facing as f64 / pairs.max(1) as f64;
     let occlusion = own_entries * lights_per_entry * receiver_count as f64 * facing_share;
@@ -210,8 +210,9 @@ pub struct PrmBake {
     /// With compression, `coefficients[cluster * rank + j]`: cluster pane ~
     /// sum_j coefficient x basis pane j.
     pub coefficients: Vec<f32>,
-    /// Fraction of the panes' energy (squared norm) the basis keeps; 1
-    /// without compression.
+    /// Fraction of the panes' energy (squared norm, each pane's weighted by
+    /// its light under the scene file's lights, see `compression_weights`)
+    /// the basis keeps; 1 without compression.
     pub captured_energy: f32,
     /// Pane-major: `panes[(pane * pane points + point) * 3 + channel]`.
     /// Without compression one pane per cluster, the indirect irradiance per
@@ -685,7 +686,7 @@ impl PrmBake {
     /// Little-endian payload for the bake file.
     pub fn encode(&self) -> Vec<u8> {
         let mut bytes =
-            Vec::with_capacity(self.panes.len() * 2 + self.entry_positions.len() * 32 + 64);
+            Vec::with_capacity(self.panes.len() * 2 + self.entry_positions.len() * 36 + 64);
         let put_u32 =
             |bytes: &mut Vec<u8>, value: u32| bytes.extend_from_slice(&value.to_le_bytes());
         put_u32(&mut bytes, PAYLOAD_VERSION);
@@ -902,6 +903,7 @@ impl Reader<'_> {
 }
 
 /// Entry points in struct-of-arrays form.
+#[derive(Default)]
 pub(crate) struct Entries {
     pub positions: Vec<Vec3>,
     pub normals: Vec<Vec3>,
@@ -918,7 +920,28 @@ pub(crate) struct Entries {
     pub irradiance: Vec<f32>,
 }
 
+/// The Halton point `index` (from 1) of an area table: base 2 picks the
+/// triangle, bases 3 and 5 the point within it.
+fn halton_point(table: &relight_scene::AreaTable, total: f64, index: u64) -> (usize, Vec2) {
+    let triangle = table.triangle_at(radical_inverse(2, index) * total);
+    let barycentric = uniform_triangle(Vec2::new(
+        radical_inverse(3, index) as f32,
+        radical_inverse(5, index) as f32,
+    ));
+    (triangle, barycentric)
+}
+
 impl Entries {
+    /// Appends the entry at `barycentric` on `triangle`, standing for
+    /// `area`.
+    fn push(&mut self, scene: &Scene, triangle: usize, barycentric: Vec2, area: f32) {
+        let mesh = &scene.mesh;
+        self.positions.push(mesh.point_at(triangle, barycentric));
+        self.normals.push(mesh.geometric_normal(triangle));
+        self.albedos.push(scene.albedo_at(triangle, barycentric));
+        self.areas.push(area);
+    }
+
     /// Each entry's flux under the scene file's lights: irradiance times
     /// albedo and area (luminance).
     fn flux(&self) -> Vec<f32> {
@@ -977,31 +1000,20 @@ pub(crate) fn sample_entries(
         irradiance: Vec::new(),
     };
     let spacing = (running as f32 / count as f32).sqrt();
-    let near_lights = NearLights::new(scene, spacing);
+    let mut near_lights = NearLights::new(scene, spacing);
     let near_budget = (count as f32 * NEAR_LIGHT_ENTRY_SHARE) as usize;
-    let mut near = Entries {
-        positions: Vec::new(),
-        normals: Vec::new(),
-        albedos: Vec::new(),
-        areas: Vec::new(),
-        path_factors: Vec::new(),
-        irradiance: Vec::new(),
-    };
+    let mut near = Entries::default();
     near_lights.sample(scene, near_budget, spacing, &mut near);
     // The rest of the surface takes the other entries: Halton draws over
     // all of it, skipping those the near-light entries cover, until there
     // are enough; each draw stands for an equal share of the weighted area.
-    let base_count = count - near.positions.len();
+    let base_count = count.saturating_sub(near.positions.len());
     let mut kept: Vec<(usize, Vec2)> = Vec::with_capacity(base_count);
     let mut draws = 0u64;
     while kept.len() < base_count && draws < MAX_DRAWS_PER_ENTRY * count as u64 {
         // Index 0 of Halton is the origin; start at 1.
         draws += 1;
-        let triangle = areas.triangle_at(radical_inverse(2, draws) * running);
-        let barycentric = uniform_triangle(Vec2::new(
-            radical_inverse(3, draws) as f32,
-            radical_inverse(5, draws) as f32,
-        ));
+        let (triangle, barycentric) = halton_point(&areas, running, draws);
         if near_lights
             .owner(triangle, mesh.point_at(triangle, barycentric))
             .is_none()
@@ -1011,13 +1023,11 @@ pub(crate) fn sample_entries(
     }
     let area_per_entry = running as f32 / draws.max(1) as f32;
     for (triangle, barycentric) in kept {
-        entries.positions.push(mesh.point_at(triangle, barycentric));
-        entries.normals.push(mesh.geometric_normal(triangle));
-        entries.albedos.push(scene.albedo_at(triangle, barycentric));
-        entries.areas.push(match &weights {
+        let area = match &weights {
             Some(weights) => area_per_entry / weights[triangle],
             None => area_per_entry,
-        });
+        };
+        entries.push(scene, triangle, barycentric, area);
     }
     entries.positions.append(&mut near.positions);
     entries.normals.append(&mut near.normals);
@@ -1120,55 +1130,64 @@ impl NearLights {
     /// per light, at most [`NEAR_LIGHT_MAX_DENSITY`] times the room's
     /// density, drawn by area over the region's triangles and kept where
     /// the region owns them, each standing for an equal part of the area.
-    fn sample(&self, scene: &Scene, budget: usize, spacing: f32, near: &mut Entries) {
-        if self.centres.is_empty() || budget == 0 {
+    /// A region that gets no entries (more lights than the budget has
+    /// entries for, or too little surface) is dropped, so that the rest of
+    /// the surface's entries cover it and later regions may own what it
+    /// overlapped.
+    fn sample(&mut self, scene: &Scene, budget: usize, spacing: f32, near: &mut Entries) {
+        let per_light = budget / self.centres.len().max(1);
+        for region in 0..self.candidates.len() {
+            let before = near.positions.len();
+            self.sample_region(scene, region, per_light, spacing, near);
+            if near.positions.len() == before {
+                self.candidates[region].clear();
+            }
+        }
+    }
+
+    fn sample_region(
+        &self,
+        scene: &Scene,
+        region: usize,
+        per_light: usize,
+        spacing: f32,
+        near: &mut Entries,
+    ) {
+        let mesh = &scene.mesh;
+        let candidates = &self.candidates[region];
+        if candidates.is_empty() || per_light == 0 {
             return;
         }
-        let mesh = &scene.mesh;
-        let per_light = budget / self.centres.len();
-        for (region, candidates) in self.candidates.iter().enumerate() {
-            if candidates.is_empty() {
-                continue;
-            }
-            let mut weights = vec![0.0f32; mesh.triangles.len()];
-            for &triangle in candidates {
-                weights[triangle as usize] = 1.0;
-            }
-            let table = relight_scene::AreaTable::weighted(mesh, Some(&weights));
-            let total = table.total();
-            let draw = |index: u64| {
-                let triangle = table.triangle_at(radical_inverse(2, index + 1) * total);
-                let barycentric = uniform_triangle(Vec2::new(
-                    radical_inverse(3, index + 1) as f32,
-                    radical_inverse(5, index + 1) as f32,
-                ));
-                let inside =
-                    self.owner(triangle, mesh.point_at(triangle, barycentric)) == Some(region);
-                (triangle, barycentric, inside)
-            };
-            let accepted = (0..NEAR_LIGHT_PILOT_DRAWS)
-                .filter(|&index| draw(index).2)
-                .count();
-            if accepted == 0 {
-                continue;
-            }
-            let fraction = accepted as f64 / NEAR_LIGHT_PILOT_DRAWS as f64;
-            let inside_area = total * fraction;
-            let densest = NEAR_LIGHT_MAX_DENSITY as f64 * inside_area / (spacing * spacing) as f64;
-            let wanted = (per_light as f64).min(densest);
-            let draws = (wanted / fraction).round() as u64;
-            if draws == 0 {
-                continue;
-            }
-            let area = (total / draws as f64) as f32;
-            for index in 0..draws {
-                let (triangle, barycentric, inside) = draw(index);
-                if inside {
-                    near.positions.push(mesh.point_at(triangle, barycentric));
-                    near.normals.push(mesh.geometric_normal(triangle));
-                    near.albedos.push(scene.albedo_at(triangle, barycentric));
-                    near.areas.push(area);
-                }
+        let mut weights = vec![0.0f32; mesh.triangles.len()];
+        for &triangle in candidates {
+            weights[triangle as usize] = 1.0;
+        }
+        let table = relight_scene::AreaTable::weighted(mesh, Some(&weights));
+        let total = table.total();
+        let draw = |index: u64| {
+            let (triangle, barycentric) = halton_point(&table, total, index + 1);
+            let inside = self.owner(triangle, mesh.point_at(triangle, barycentric)) == Some(region);
+            (triangle, barycentric, inside)
+        };
+        let accepted = (0..NEAR_LIGHT_PILOT_DRAWS)
+            .filter(|&index| draw(index).2)
+            .count();
+        if accepted == 0 {
+            return;
+        }
+        let fraction = accepted as f64 / NEAR_LIGHT_PILOT_DRAWS as f64;
+        let inside_area = total * fraction;
+        let densest = NEAR_LIGHT_MAX_DENSITY as f64 * inside_area / (spacing * spacing) as f64;
+        let wanted = (per_light as f64).min(densest);
+        let draws = (wanted / fraction).round() as u64;
+        if draws == 0 {
+            return;
+        }
+        let area = (total / draws as f64) as f32;
+        for index in 0..draws {
+            let (triangle, barycentric, inside) = draw(index);
+            if inside {
+                near.push(scene, triangle, barycentric, area);
             }
         }
     }
@@ -1191,7 +1210,16 @@ fn irradiance_under_scene_lights(context: &SceneContext, entries: &Entries) -> V
         None,
         &mut irradiance,
     );
-    irradiance.into_iter().map(luminance).collect()
+    // A non-finite value (a degenerate triangle's normal) counts as dark:
+    // the bake file refuses non-finite irradiance.
+    irradiance
+        .into_iter()
+        .map(|value| {
+            Some(luminance(value))
+                .filter(|value| value.is_finite() && *value >= 0.0)
+                .unwrap_or(0.0)
+        })
+        .collect()
 }
 
 /// [`Entries::path_factors`]: each entry's flux (irradiance times albedo
@@ -1234,6 +1262,11 @@ fn entry_weights(scene: &Scene, atlas: &Atlas) -> Option<Vec<f32>> {
     )
 }
 
+/// Clusters an entry may join, nearest first, before it gives up on
+/// finding one whose anchor is alike: a room's entries find a cluster of
+/// their own room among the first few.
+const ALIKE_CANDIDATES: usize = 16;
+
 /// The clustering's distance: positions in scene diagonals, normals
 /// times `normal_weight`.
 #[derive(Clone, Copy)]
@@ -1262,15 +1295,13 @@ pub(crate) struct Metric {
 /// two-room suites such clusters carried most of the unlit room's light,
 /// 2 to 4 times too much.
 ///
+/// Entries that find no alike anchor among those clusters get clusters of
+/// their own, as far as [`give_orphans_clusters`] allows.
+///
 /// Evenly spaced entries of the Halton order are not a usable seeding: every
 /// 16th index shares its low bits, so its base-2 radical inverse (which picks
 /// the triangle) falls in one sixteenth of the area, and most clusters came
 /// out empty.
-/// Clusters an entry may join, nearest first, before it gives up on
-/// finding one whose anchor is alike: a room's entries find a cluster of
-/// their own room among the first few.
-const ALIKE_CANDIDATES: usize = 16;
-
 pub(crate) fn cluster_entries(
     positions: &[Vec3],
     normals: &[Vec3],
@@ -1560,7 +1591,9 @@ fn light_path_vertices(
     epsilon: f32,
 ) -> Vec<VirtualLight> {
     let scene = &context.scene;
-    let paths = params.paths_per_entry * entries.path_factors[entry];
+    let paths = params
+        .paths_per_entry
+        .saturating_mul(entries.path_factors[entry]);
     let start = VirtualLight {
         position: entries.positions[entry],
         normal: entries.normals[entry],

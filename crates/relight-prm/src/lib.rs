@@ -37,7 +37,7 @@
 //! | `pane_resolution` | 256 | pane points as far apart as the texels of a lightmap this many texels on its longer side (the paper's panes: 256 x 256); the light is upsampled to the scene's lightmap each frame; 0 = a pane value at every lightmap texel |
 //! | `pane_texel_size` | 0 | pane point spacing in metres; overrides `pane_resolution` when above 0 |
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
-//! | `paths_per_entry` | 4 | light paths from each entry point |
+//! | `paths_per_entry` | 4 | light paths from each entry point, times 1 to 16 by its flux under the scene file's lights |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the entry points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
@@ -57,7 +57,8 @@
 //! bright near its own entry points, so the panes overlap little and their
 //! energy spreads over many components: 32 keep only 72-77 % of it on the
 //! Cornell box, the corridor and a generated atrium, 128 keep 95-98 %
-//! (`relight bench`'s memory report gives the share). A light that
+//! (plain components; `relight bench`'s memory report gives the share,
+//! now of the energy weighted by each pane's light). A light that
 //! reaches one part of a building is then smeared over the others.
 //! Camera-visible lightmap / 8x8-tile relRMSE at rank 32 -> 128
 //! (`relight converge SCENE -t prm --sweep rank=32,128`, Sponza with
@@ -149,9 +150,9 @@
 //!   to 3.9x of the path tracer's). A cluster joined them to entries whose
 //!   light goes elsewhere (the same wall past a partition, a doorway's
 //!   jamb with the shade's normal), and the pane spread their light into
-//!   the next room: clusters now hold only entries that see each other's
-//!   front, and entries alike to no cluster near them get one of their own
-//!   (`cluster_entries`). Entries spaced like the room's fell near the
+//!   the next room: an entry now joins only a cluster whose anchor it sees
+//!   from the front, and entries alike to no cluster near them get one of
+//!   their own (`cluster_entries`). Entries spaced like the room's fell near the
 //!   lamp by chance and counted 0.85-1.05 of its flux: an eighth of the
 //!   entries now cover the surfaces near each light of the scene file, and
 //!   a point light's irradiance is averaged over each entry's patch, so an

@@ -392,7 +392,7 @@ impl Technique for Prm {
             MemoryEntry::new(
                 if bake.rank > 0 {
                     format!(
-                        "{} basis panes (f16 RGB, {:.1} % of the panes' energy)",
+                        "{} basis panes (f16 RGB, {:.1} % of the panes' light-weighted energy)",
                         bake.rank,
                         bake.captured_energy * 100.0
                     )

@@ -371,15 +371,14 @@ impl<'a> DirectLight<'a> {
         static_irradiance: Option<&[Rgb]>,
         irradiance: &mut [Rgb],
     ) {
-        let Some(static_irradiance) = static_irradiance else {
-            return self.irradiance_batch(lights, points, normals, irradiance);
-        };
-        assert_eq!(points.len(), static_irradiance.len());
-        self.batch(points, normals, irradiance, |index, cache| {
-            let origin = points[index] + normals[index] * self.ray_epsilon;
-            self.punctual_part(lights, origin, normals[index], 0.0, cache)
-                + static_irradiance[index]
-        });
+        self.batch_over_static(
+            lights,
+            points,
+            normals,
+            |_| 0.0,
+            static_irradiance,
+            irradiance,
+        );
     }
 
     /// [`Self::irradiance_batch_over_static`] with each point's punctual
@@ -399,18 +398,36 @@ impl<'a> DirectLight<'a> {
         irradiance: &mut [Rgb],
     ) {
         assert_eq!(points.len(), footprint_areas.len());
+        self.batch_over_static(
+            lights,
+            points,
+            normals,
+            |index| footprint_areas[index],
+            static_irradiance,
+            irradiance,
+        );
+    }
+
+    /// Both of the above: `footprint(i)` is point i's patch area, 0 for
+    /// the light at the point itself. Without `static_irradiance` the
+    /// static light is traced here, with the point's index as its key, as
+    /// [`Self::irradiance_batch`] does.
+    fn batch_over_static(
+        &self,
+        lights: &[Light],
+        points: &[Vec3],
+        normals: &[Vec3],
+        footprint: impl Fn(usize) -> f32 + Sync,
+        static_irradiance: Option<&[Rgb]>,
+        irradiance: &mut [Rgb],
+    ) {
         if let Some(static_irradiance) = static_irradiance {
             assert_eq!(points.len(), static_irradiance.len());
         }
         self.batch(points, normals, irradiance, |index, cache| {
             let origin = points[index] + normals[index] * self.ray_epsilon;
-            let punctual = self.punctual_part(
-                lights,
-                origin,
-                normals[index],
-                footprint_areas[index],
-                cache,
-            );
+            let punctual =
+                self.punctual_part(lights, origin, normals[index], footprint(index), cache);
             match static_irradiance {
                 Some(static_irradiance) => punctual + static_irradiance[index],
                 None => self.static_part(punctual, origin, normals[index], index as u64, cache),
