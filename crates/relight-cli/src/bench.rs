@@ -361,10 +361,7 @@ pub fn shadow_ray_target(scene: &relight_scene::Scene) -> Vec3 {
     scene
         .lights
         .iter()
-        .find_map(|light| match light {
-            Light::Point { position, .. } | Light::Spot { position, .. } => Some(*position),
-            Light::Directional { .. } => None,
-        })
+        .find_map(Light::position)
         .unwrap_or(Vec3::new(
             (lo.x + hi.x) * 0.5,
             lo.y + (hi.y - lo.y) * 0.9,

@@ -1081,11 +1081,7 @@ impl NearLights {
         let centres: Vec<Vec3> = scene
             .lights
             .iter()
-            .filter_map(|light| match *light {
-                relight_scene::Light::Point { position, .. }
-                | relight_scene::Light::Spot { position, .. } => Some(position),
-                relight_scene::Light::Directional { .. } => None,
-            })
+            .filter_map(relight_scene::Light::position)
             .collect();
         let radius = NEAR_LIGHT_RADIUS_SPACINGS * spacing;
         let mesh = &scene.mesh;
@@ -1098,7 +1094,7 @@ impl NearLights {
                         let low = corners[0].min(corners[1]).min(corners[2]);
                         let high = corners[0].max(corners[1]).max(corners[2]);
                         centre.clamp(low, high).distance_squared(centre) < radius * radius
-                            && Self::faces(mesh, triangle as usize, centre)
+                            && mesh.faces_point(triangle as usize, centre)
                             && mesh.area(triangle as usize) > 0.0
                     })
                     .collect()
@@ -1109,11 +1105,6 @@ impl NearLights {
             radius,
             candidates,
         }
-    }
-
-    fn faces(mesh: &relight_scene::Mesh, triangle: usize, light: Vec3) -> bool {
-        let [corner, ..] = mesh.vertices(triangle);
-        mesh.geometric_normal(triangle).dot(light - corner) > 0.0
     }
 
     /// The region `point` on `triangle` belongs to, if any.

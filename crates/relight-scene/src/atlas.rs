@@ -702,12 +702,7 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
     let positions: Vec<Vec3> = scene
         .lights
         .iter()
-        .filter_map(|light| match *light {
-            crate::Light::Point { position, .. } | crate::Light::Spot { position, .. } => {
-                Some(position)
-            }
-            crate::Light::Directional { .. } => None,
-        })
+        .filter_map(crate::Light::position)
         .collect();
     if positions.is_empty() || metres_per_texel.is_nan() || metres_per_texel <= 0.0 {
         return 0;
@@ -734,14 +729,10 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
         // Only a light in front of the chart lights it directly; its back
         // (a shade's outside) is lit as the rest of the room is.
         let faces = |light: Vec3| {
-            chart.triangles.iter().any(|&triangle| {
-                let [corner, ..] = scene.mesh.vertices(triangle as usize);
-                scene
-                    .mesh
-                    .geometric_normal(triangle as usize)
-                    .dot(light - corner)
-                    > 0.0
-            })
+            chart
+                .triangles
+                .iter()
+                .any(|&triangle| scene.mesh.faces_point(triangle as usize, light))
         };
         let distance = positions
             .iter()

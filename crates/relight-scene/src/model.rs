@@ -44,6 +44,14 @@ impl Mesh {
         (b - a).cross(c - a).normalize_or_zero()
     }
 
+    /// Whether `point` lies in front of `triangle` (on its normal's side
+    /// of its plane): a light there can light its front.
+    #[inline]
+    pub fn faces_point(&self, triangle: usize, point: Vec3) -> bool {
+        let [corner, ..] = self.vertices(triangle);
+        self.geometric_normal(triangle).dot(point - corner) > 0.0
+    }
+
     #[inline]
     pub fn area(&self, triangle: usize) -> f32 {
         let [a, b, c] = self.vertices(triangle);
@@ -194,6 +202,14 @@ pub enum Light {
 }
 
 impl Light {
+    /// Where a point or spot light stands; `None` for a sun.
+    pub fn position(&self) -> Option<Vec3> {
+        match *self {
+            Light::Point { position, .. } | Light::Spot { position, .. } => Some(position),
+            Light::Directional { .. } => None,
+        }
+    }
+
     /// The light turned by `rotation` about `centre`: positions move,
     /// directions turn, intensities stay (benchmark and study orbits).
     pub fn rotated_about(&self, centre: Vec3, rotation: Quat) -> Light {
