@@ -14,7 +14,7 @@
 //! and direction (runtime projection, 12 bytes) or SH coefficients.
 //!
 //! Every frame: surfel lighting (the direct-light service at each surfel,
-//! the light of emissive surfaces through the links, and last frame's
+//! a point light's averaged over the surfel's disc, the light of emissive surfaces through the links, and last frame's
 //! caches for further bounces) into flux per leaf in YCoCg; the pull sums
 //! flux up the tree; cache lighting sums linked flux times transport into
 //! SH (`bands` for luma, `chroma_bands` for chroma); shading reads the

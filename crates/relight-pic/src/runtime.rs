@@ -80,6 +80,10 @@ pub struct Pic {
     /// The surfels' direct light that no frame changes (the environment,
     /// and emissive triangles unless they light through the links).
     surfel_static: relight_trace::direct::StaticDirect,
+    /// Each surfel's disc (m^2), over which its direct light is the mean:
+    /// a surfel beside a lamp stands for its disc, not the 1/d^2 at its
+    /// centre.
+    surfel_areas: Vec<f32>,
     /// Last frame's indirect irradiance at each surfel (YCoCg), reused.
     surfel_indirect: Vec<Vec3>,
     /// A_l of the clamped cosine lobe, per band.
@@ -188,6 +192,7 @@ impl Pic {
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
             surfel_static: Default::default(),
+            surfel_areas: vec![surfels.area; surfels.len()],
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
             cosine_factors,
             flux,
@@ -560,11 +565,12 @@ impl Pic {
             direct.settings.area_light_samples = 0;
         }
         let surfels = &self.bake.surfels;
-        self.surfel_static.irradiance_batch(
+        self.surfel_static.irradiance_batch_over_footprints(
             &direct,
             frame.lights,
             &surfels.positions,
             &surfels.normals,
+            &self.surfel_areas,
             &mut self.surfel_direct,
         );
     }
@@ -1151,8 +1157,8 @@ impl Technique for Pic {
         let surfels = bake.surfels.len();
         let mut entries = vec![
             MemoryEntry::new(
-                "surfels (position, normal, albedo, direct, area light)",
-                surfels * (12 * 5),
+                "surfels (position, normal, albedo, direct, area light, disc area)",
+                surfels * (12 * 5 + 4),
             ),
             MemoryEntry::new(
                 "hierarchy (children, leaf ranges)",

@@ -162,6 +162,12 @@ impl Atlas {
             .map_or(1.0, |scale| scale * scale)
     }
 
+    /// The surface (m^2) a receiver on `triangle` stands for: its texel's
+    /// footprint on the surface.
+    pub fn texel_area(&self, triangle: u32) -> f32 {
+        self.metres_per_texel * self.metres_per_texel * self.texel_area_weight(triangle)
+    }
+
     /// Builds the atlas of `scene` at the requested density.
     pub fn build(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
         Self::build_refining(scene, density, scene.lightmap_layout.refine_near_lights)
@@ -664,7 +670,7 @@ struct Chart {
 /// A chart near a point or spot light gets texels no longer than its
 /// distance to the light over this: the light's irradiance falls as 1/d^2,
 /// so a texel a quarter of d across varies about 1.5x from edge to edge.
-const NEAR_LIGHT_DISTANCE_PER_TEXEL: f32 = 4.0;
+pub const NEAR_LIGHT_DISTANCE_PER_TEXEL: f32 = 4.0;
 
 /// Texel edges near a light are at most this many times finer than the
 /// detail region's.

@@ -28,9 +28,11 @@
 //! columns of the cluster's probes. Each probe also keeps a sample table: for each of the shared
 //! stratified sphere directions, the texel its ray hits.
 //!
-//! Every frame: direct irradiance at the texels the probes see (plus last
-//! frame's indirect irradiance, the final gather's where a texel gathers,
-//! times albedo / pi, for further bounces);
+//! Every frame: direct irradiance at the texels the probes see (a point
+//! light's averaged over each texel's footprint, as a probe ray lands
+//! anywhere on it; plus last frame's indirect irradiance, the final
+//! gather's where a texel gathers, times albedo / pi, for further
+//! bounces);
 //! probe projection into SH through the sample tables; per cluster the
 //! light basis vector Sigma_c V^T lambda; per receiver U_c times it,
 //! stored packed (RGB9E5) in cluster order. The lightmap is that array seen

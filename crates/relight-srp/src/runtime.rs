@@ -114,6 +114,10 @@ pub struct Srp {
     /// The static direct light (environment, emissive triangles) of every
     /// visible texel, and of this frame's needed texels.
     visible_static: relight_trace::direct::StaticDirect,
+    /// Each probe-visible texel's footprint (m^2): its direct light is
+    /// that patch's mean, as a probe ray landing anywhere on it reads.
+    visible_areas: Vec<f32>,
+    gathered_areas: Vec<f32>,
     gathered_static: Vec<Rgb>,
     updates: u64,
     /// The last frame's lights and the fixed rays that answer points in
@@ -181,6 +185,10 @@ impl Srp {
         let visible_positions = pick(&receivers.positions);
         let visible_normals = pick(&receivers.normals);
         let visible_albedos = pick(&receivers.albedos);
+        let visible_areas: Vec<f32> = visible
+            .iter()
+            .map(|&r| context.atlas.texel_area(receivers.triangles[r as usize]))
+            .collect();
         let probe_count = bake.probes.len();
         // The zero slot past the receivers is where texels showing none
         // read.
@@ -231,6 +239,8 @@ impl Srp {
             visible_positions,
             visible_normals,
             visible_albedos,
+            visible_areas,
+            gathered_areas: Vec::new(),
             probe_radiance: vec![0.0; probe_count * 3 * coefficients],
             light_basis: vec![0.0; bake.clusters.cluster_count() * 3 * bake.clusters.rank],
             radiance_light_basis: vec![
@@ -381,11 +391,12 @@ impl Srp {
     fn direct_light(&mut self, frame: &Frame) {
         let direct = self.context.direct();
         if self.needed.len() == self.visible_positions.len() {
-            self.visible_static.irradiance_batch(
+            self.visible_static.irradiance_batch_over_footprints(
                 &direct,
                 frame.lights,
                 &self.visible_positions,
                 &self.visible_normals,
+                &self.visible_areas,
                 &mut self.visible_direct,
             );
             return;
@@ -399,7 +410,9 @@ impl Srp {
         self.gathered_positions.clear();
         self.gathered_normals.clear();
         self.gathered_static.clear();
+        self.gathered_areas.clear();
         for &texel in &self.needed {
+            self.gathered_areas.push(self.visible_areas[texel as usize]);
             self.gathered_positions
                 .push(self.visible_positions[texel as usize]);
             self.gathered_normals
@@ -410,10 +423,11 @@ impl Srp {
         }
         self.gathered_direct.clear();
         self.gathered_direct.resize(self.needed.len(), Rgb::ZERO);
-        direct.irradiance_batch_over_static(
+        direct.irradiance_batch_over_footprints(
             frame.lights,
             &self.gathered_positions,
             &self.gathered_normals,
+            &self.gathered_areas,
             visible_static.map(|_| self.gathered_static.as_slice()),
             &mut self.gathered_direct,
         );
@@ -1028,7 +1042,7 @@ impl Technique for Srp {
             MemoryEntry::new("SH basis table", self.basis_table.len() * 4),
             MemoryEntry::new(
                 "probe-visible texels",
-                bake.visible_receivers.len() * (4 + 12 + 12 + 12 + 12 + 12 + 4),
+                bake.visible_receivers.len() * (4 + 12 + 12 + 12 + 12 + 12 + 4 + 4),
             ),
             MemoryEntry::new("probe radiance (lambda)", self.probe_radiance.len() * 4),
             MemoryEntry::new("light basis vectors", self.light_basis.len() * 4),
