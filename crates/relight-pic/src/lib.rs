@@ -14,8 +14,9 @@
 //! and direction (runtime projection, 12 bytes) or SH coefficients.
 //!
 //! Every frame: surfel lighting (the direct-light service at each surfel,
-//! a point light's averaged over the surfel's disc, the light of emissive surfaces through the links, and last frame's
-//! caches for further bounces) into flux per leaf in YCoCg; the pull sums
+//! a point light's averaged over a square of the surfel's area, the light
+//! of emissive surfaces through the links, and last frame's caches for
+//! further bounces) into flux per leaf in YCoCg; the pull sums
 //! flux up the tree; cache lighting sums linked flux times transport into
 //! SH (`bands` for luma, `chroma_bands` for chroma); shading reads the
 //! caches bilinearly in the lightmap (static surfaces) or trilinearly in

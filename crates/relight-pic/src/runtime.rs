@@ -80,8 +80,8 @@ pub struct Pic {
     /// The surfels' direct light that no frame changes (the environment,
     /// and emissive triangles unless they light through the links).
     surfel_static: relight_trace::direct::StaticDirect,
-    /// Each surfel's disc (m^2), over which its direct light is the mean:
-    /// a surfel beside a lamp stands for its disc, not the 1/d^2 at its
+    /// Each surfel's area (m^2), over which its direct light is the mean:
+    /// a surfel beside a lamp stands for its patch, not the 1/d^2 at its
     /// centre.
     surfel_areas: Vec<f32>,
     /// Last frame's indirect irradiance at each surfel (YCoCg), reused.

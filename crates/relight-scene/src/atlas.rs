@@ -670,6 +670,8 @@ struct Chart {
 /// A chart near a point or spot light gets texels no longer than its
 /// distance to the light over this: the light's irradiance falls as 1/d^2,
 /// so a texel a quarter of d across varies about 1.5x from edge to edge.
+/// The final gather samples the surfaces nearer a light than this many of
+/// their texels explicitly, for the same reason.
 pub const NEAR_LIGHT_DISTANCE_PER_TEXEL: f32 = 4.0;
 
 /// Texel edges near a light are at most this many times finer than the

@@ -117,6 +117,7 @@ pub struct Srp {
     /// Each probe-visible texel's footprint (m^2): its direct light is
     /// that patch's mean, as a probe ray landing anywhere on it reads.
     visible_areas: Vec<f32>,
+    /// Scratch: the footprints of the texels a frame needs.
     gathered_areas: Vec<f32>,
     gathered_static: Vec<Rgb>,
     updates: u64,

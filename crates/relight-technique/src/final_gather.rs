@@ -141,7 +141,7 @@ fn texel_point(context: &SceneContext, triangle: u32, texel: usize) -> (Vec3, Ve
     let width = context.atlas.width as usize;
     let centre = Vec2::new((texel % width) as f32 + 0.5, (texel / width) as f32 + 0.5);
     let uvs = &context.atlas.triangle_uvs[triangle as usize];
-    let (_, barycentric) = relight_scene::atlas::closest_barycentric(uvs, centre);
+    let (_, barycentric) = closest_barycentric(uvs, centre);
     (
         context.scene.mesh.point_at(triangle as usize, barycentric),
         barycentric,
@@ -935,10 +935,16 @@ impl WeightedRows {
     }
 
     fn rows_with_entries(&self) -> usize {
-        self.starts
-            .windows(2)
-            .filter(|range| range[1] > range[0])
+        (0..self.starts.len().saturating_sub(1))
+            .filter(|&row| self.has_entries(row))
             .count()
+    }
+
+    /// Whether `row` has entries (false for every row of an empty matrix).
+    fn has_entries(&self, row: usize) -> bool {
+        self.starts
+            .get(row + 1)
+            .is_some_and(|&end| end > self.starts[row])
     }
 
     fn memory_bytes(&self) -> usize {
@@ -950,14 +956,15 @@ impl WeightedRows {
 /// refined near a light (the inside of a lamp's shade, a sconce's recess),
 /// and on the larger surfaces it did not refine (a wall or floor beside a
 /// lamp) the part within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their texels
-/// from the light, where the light's 1/d^2 varies more within a texel
-/// than between texels. Their direct light is tens to thousands of times
+/// from the light, where a texel is wider than a quarter of its distance
+/// to the light and the light varies by more than about 1.5x across it.
+/// Their direct light is tens to thousands of times
 /// the room's, over an area that few gather rays find: one receiver's
 /// rays catch it and its neighbour's miss it, the oval spots on the walls
 /// beside a shaded lamp and beside a lamp a few centimetres from a wall.
 /// The gather counts their light by explicit samples instead: points
-/// spread over them at about their texel density, or two a texel edge on
-/// the large surfaces (fewer past `HOT_SAMPLE_BUDGET`), each of which a
+/// spread over them at about their texel density, or four a texel edge
+/// on the large surfaces (fewer past `HOT_SAMPLE_BUDGET`), each of which a
 /// gathering receiver that sees it weights by its form factor, found once
 /// at load; the rays skip them. That part of the gather is then smooth
 /// from receiver to receiver and costs a weighted sum over the samples'
@@ -981,54 +988,92 @@ struct HotSample {
     area: f32,
 }
 
-/// The part of a triangle's plane within a light's reach: a disc, of
-/// which the samples inside the triangle are kept.
+/// The part of a triangle within a light's reach: the points of its
+/// plane nearer the light than `reach`, a disc of `radius` around the
+/// light's foot. A triangle no larger than the disc is sampled over
+/// itself, stratified, keeping the points inside the disc (a curved
+/// surface's small facets each keep their own share); a larger one (a
+/// wall of two triangles) keeps the points of a spiral over the disc
+/// that fall in it, which the plane's other large triangles share.
 struct HotDisc {
     triangle: usize,
     light: Vec3,
     reach: f32,
-    /// The disc: radius around the light's foot on the plane, normal
-    /// (toward the light).
     radius: f32,
     normal: Vec3,
-    /// The triangle's corners in the disc's frame (see `disc_frame`).
-    corners: [Vec2; 3],
+    /// The triangle's corners, and in the disc's frame (`disc_frame`)
+    /// for the spiral.
+    corners: [Vec3; 3],
+    flat_corners: [Vec2; 3],
+    /// Its area where `stratified`, else the disc's: what the points
+    /// share.
+    area: f32,
+    stratified: bool,
     count: usize,
 }
 
 impl HotDisc {
-    /// The barycentric coordinates of the points of a `count`-point Vogel
-    /// spiral over the disc that fall in the triangle: even over the disc
-    /// for any count, and the same points on every triangle of one plane,
-    /// each kept by the triangle it falls in.
+    /// The barycentric coordinates of the points of a `count`-point set
+    /// that fall in both the triangle and the disc: stratified over the
+    /// triangle, or a Vogel spiral over the disc (even over it for any
+    /// count, and the same points on every large triangle of one plane,
+    /// each kept by the triangle it falls in). Each stands for
+    /// `area / count`.
     fn points(&self, count: usize) -> impl Iterator<Item = Vec2> + '_ {
+        let reach_squared = self.reach * self.reach;
         (0..count).filter_map(move |index| {
+            if self.stratified {
+                let barycentric = stratified_barycentric(index, count);
+                let [a, b, c] = self.corners;
+                let point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
+                return (point.distance_squared(self.light) < reach_squared).then_some(barycentric);
+            }
             let radius = self.radius * ((index as f32 + 0.5) / count as f32).sqrt();
             let (sin, cos) = (index as f32 * GOLDEN_ANGLE).sin_cos();
             let (distance, barycentric) =
-                closest_barycentric(&self.corners, Vec2::new(cos, sin) * radius);
+                closest_barycentric(&self.flat_corners, Vec2::new(cos, sin) * radius);
             (distance == 0.0).then_some(barycentric)
         })
     }
+}
+
+/// Point `index` of `count` stratified over a triangle, as barycentric
+/// coordinates.
+fn stratified_barycentric(index: usize, count: usize) -> Vec2 {
+    uniform_triangle(Vec2::new(
+        (index as f32 + 0.5) / count as f32,
+        radical_inverse(2, index as u64) as f32,
+    ))
 }
 
 /// The golden angle (radians): successive points of a Vogel spiral turn by
 /// it, so any count of them spreads evenly.
 const GOLDEN_ANGLE: f32 = 2.399_963_2;
 
-/// Coordinates in the plane through `centre` with `normal`.
+/// Coordinates in the plane through `centre` with `normal`, on axes taken
+/// from a fixed world axis so that triangles of one plane agree on them
+/// whatever the signs of their normals' zero components.
 fn disc_frame(centre: Vec3, normal: Vec3) -> impl Fn(Vec3) -> Vec2 {
-    let (tangent, bitangent) = orthonormal_basis(normal);
+    let axis = if normal.y.abs() < 0.9 {
+        Vec3::Y
+    } else {
+        Vec3::X
+    };
+    let tangent = axis.cross(normal).normalize_or_zero();
+    let bitangent = normal.cross(tangent);
     move |point| {
         let offset = point - centre;
         Vec2::new(offset.dot(tangent), offset.dot(bitangent))
     }
 }
 
-/// The surfaces facing each point or spot light of the scene file within
-/// `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their own texels (the refined charts
-/// excepted, which are hot whole): one disc per triangle and light, with
-/// samples two a texel edge.
+/// The triangles in front of each point or spot light of the scene file
+/// within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their own texels (the refined
+/// charts excepted, which are hot whole): one disc per triangle and light,
+/// a triangle's discs together, in the lights' order, with points four a
+/// texel edge: at two, where the points read a spot light's patch on the
+/// floor (variant 88), the unlit room's light moved by 5 % with the
+/// points' pattern.
 fn near_light_discs(
     context: &SceneContext,
     scale_of: &(impl Fn(usize) -> f32 + Sync),
@@ -1052,23 +1097,26 @@ fn near_light_discs(
             let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * texel;
             let normal = mesh.geometric_normal(triangle);
             let corners = mesh.vertices(triangle);
+            let triangle_area = mesh.area(triangle);
             lights.iter().filter_map(move |&light| {
                 let height = (light - corners[0]).dot(normal);
-                // Behind the triangle, beyond its reach, or no reach at all
-                // (NaN included).
+                // Behind the triangle (or in its plane), beyond its reach,
+                // or no reach at all (NaN included).
                 if !(height > 0.0 && height < reach) {
                     return None;
                 }
                 let centre = light - normal * height;
                 let radius = (reach * reach - height * height).sqrt();
-                let flat = disc_frame(centre, normal);
-                let corners = corners.map(flat);
-                let (distance, _) = closest_barycentric(&corners, Vec2::ZERO);
+                let flat_corners = corners.map(disc_frame(centre, normal));
+                let (distance, _) = closest_barycentric(&flat_corners, Vec2::ZERO);
                 if distance >= radius {
                     return None;
                 }
-                let spacing = 0.5 * texel;
-                let count = (std::f32::consts::PI * radius * radius / (spacing * spacing))
+                let disc_area = std::f32::consts::PI * radius * radius;
+                let stratified = triangle_area <= disc_area;
+                let area = if stratified { triangle_area } else { disc_area };
+                let spacing = 0.25 * texel;
+                let count = (area / (spacing * spacing))
                     .ceil()
                     .clamp(1.0, HOT_SAMPLES_PER_DISC as f32) as usize;
                 Some(HotDisc {
@@ -1078,6 +1126,9 @@ fn near_light_discs(
                     radius,
                     normal,
                     corners,
+                    flat_corners,
+                    area,
+                    stratified,
                     count,
                 })
             })
@@ -1097,15 +1148,16 @@ const HOT_HITS_FOR_RAYS: f32 = 32.0;
 /// texels, the most a chart near a light is given.
 const HOT_SAMPLES_PER_TRIANGLE: usize = 256;
 
-/// The most samples in one hot disc: two a texel edge over a disc of
-/// `NEAR_LIGHT_DISTANCE_PER_TEXEL` texels' radius is about 200.
+/// The most samples in one hot disc: four a texel edge over a disc of
+/// `NEAR_LIGHT_DISTANCE_PER_TEXEL` texels' radius is at most 805; the
+/// bound only guards the arithmetic.
 const HOT_SAMPLES_PER_DISC: usize = 1024;
 
 /// The most hot samples in a scene: every gathering receiver in front of
 /// one traces a shadow ray to it at load and sums its slot a frame. Past
-/// this the samples thin out evenly over every hot triangle (the same
-/// samples for every receiver, so the answer stays smooth), down to one
-/// a triangle.
+/// this the samples thin out evenly over every hot triangle and disc (the
+/// same samples for every receiver, so the answer stays smooth), down to
+/// one a triangle or disc.
 const HOT_SAMPLE_BUDGET: usize = 4096;
 
 impl HotSurfaces {
@@ -1151,11 +1203,7 @@ impl HotSurfaces {
             let normal = mesh.geometric_normal(triangle);
             triangles[triangle] = true;
             for index in 0..count {
-                let sample = Vec2::new(
-                    (index as f32 + 0.5) / count as f32,
-                    radical_inverse(2, index as u64) as f32,
-                );
-                let barycentric = uniform_triangle(sample);
+                let barycentric = stratified_barycentric(index, count);
                 samples.push(HotSample {
                     triangle: triangle as u32,
                     barycentric,
@@ -1166,14 +1214,26 @@ impl HotSurfaces {
             }
         }
         let mut balls = Vec::with_capacity(discs.len());
-        for disc in &discs {
+        for (index, disc) in discs.iter().enumerate() {
             let count = thinned(disc.count);
-            let area = std::f32::consts::PI * disc.radius * disc.radius / count as f32;
+            let area = disc.area / count as f32;
+            // Where two lights' reaches overlap on a triangle, the earlier
+            // light's points count the overlap; the rays skip it once.
+            let earlier = discs[..index]
+                .iter()
+                .rev()
+                .take_while(|earlier| earlier.triangle == disc.triangle);
             for barycentric in disc.points(count) {
+                let position = mesh.point_at(disc.triangle, barycentric);
+                if earlier.clone().any(|earlier| {
+                    position.distance_squared(earlier.light) < earlier.reach * earlier.reach
+                }) {
+                    continue;
+                }
                 samples.push(HotSample {
                     triangle: disc.triangle as u32,
                     barycentric,
-                    position: mesh.point_at(disc.triangle, barycentric),
+                    position,
                     normal: disc.normal,
                     area,
                 });
@@ -1351,16 +1411,6 @@ mod tests {
         (gather, indirect, settings)
     }
 
-    /// Whether gathering receiver `row` weighs hot samples instead of
-    /// counting the hot surfaces by its rays.
-    fn samples_hot_surfaces(gather: &FinalGather, row: usize) -> bool {
-        gather
-            .explicit
-            .starts
-            .get(row + 1)
-            .is_some_and(|&end| end > gather.explicit.starts[row])
-    }
-
     /// With no light and the same indirect light everywhere, each gathering
     /// receiver's value is the mean over its rays of the hit's albedo times
     /// that light (front faces; back faces reflect direct light alone,
@@ -1383,7 +1433,7 @@ mod tests {
         let (mut agree, mut compared) = (0, 0);
         for (row, (&receiver, &value)) in gather.receivers().iter().zip(gather.values()).enumerate()
         {
-            if samples_hot_surfaces(&gather, row) {
+            if gather.explicit.has_entries(row) {
                 continue;
             }
             compared += 1;
@@ -1438,7 +1488,7 @@ mod tests {
         let (mut agree, mut compared) = (0, 0);
         for (row, (&receiver, &value)) in gather.receivers().iter().zip(gather.values()).enumerate()
         {
-            if samples_hot_surfaces(&gather, row) {
+            if gather.explicit.has_entries(row) {
                 continue;
             }
             compared += 1;
@@ -1723,10 +1773,7 @@ mod tests {
         // Over the receivers that sample the hot surfaces (outside the
         // shade), relative to the light there.
         let sampled: Vec<bool> = (0..gathered.len())
-            .map(|row| {
-                let row = row * STRIDE;
-                gather.explicit.starts[row + 1] > gather.explicit.starts[row]
-            })
+            .map(|row| gather.explicit.has_entries(row * STRIDE))
             .collect();
         let error = |values: &[f32]| {
             let squared: f32 = values
@@ -1773,10 +1820,12 @@ mod tests {
     /// the lamp's foot, 300 times the room's irradiance, no longer makes
     /// spots where a receiver's rays catch it. Against the rays, as for
     /// the shade:
-    /// - light within 5 % (measured 0.969x): the slots' direct light is
-    ///   the mean over a square the size of their texel, which stands in
-    ///   for the texel itself; beside a lamp at a quarter of a texel's
-    ///   width the two differ by a few per cent;
+    /// - light within 5 % (measured 1.018x; 0.961x with half the points):
+    ///   the slots' direct light is the mean over a square the size of
+    ///   their texel, which stands in for the texel itself, and some
+    ///   sixteen points fall in the texel under the lamp, which holds
+    ///   about half of the disc's light; beside a lamp at 0.4 of a 15 cm
+    ///   texel's width both cost a few per cent;
     /// - error under 0.35 of 256 plain rays' (measured 0.13).
     #[test]
     fn a_hot_spot_on_a_large_wall_is_sampled_not_hit() {
@@ -1789,15 +1838,19 @@ mod tests {
     }
 
     /// The samples of the hot discs on one plane stand for the disc's area
-    /// where the plane's triangles cover it: each sample counts the same
-    /// share of its disc, whichever triangle keeps it.
+    /// where the plane's triangles cover it. The wall before the lamp in
+    /// variant 25 is of triangles smaller than the disc, each sampled over
+    /// itself and keeping its points inside the disc: the triangles its
+    /// edge crosses keep a share of their points that differs from their
+    /// covered share by up to a point each, so the sum may miss the disc
+    /// by a few per cent (measured 0.996 of it); 2 % either way.
     #[test]
     fn hot_discs_stand_for_their_area() {
         let context = variant_context(25);
         let hot = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         let mesh = &context.scene.mesh;
-        // Per light and plane (its normal and offset, rounded), the disc
-        // area the samples stand for.
+        // Per plane (its normal and offset, rounded; the variant has one
+        // light), the area the samples stand for.
         let mut planes: std::collections::BTreeMap<[i64; 4], f32> = Default::default();
         for sample in &hot.samples {
             if hot.triangles[sample.triangle as usize] {
@@ -1819,11 +1872,11 @@ mod tests {
             println!("plane {key:?}: {area:.4} of {disc:.4} m^2");
             // The disc may pass the plane's edge (a corner); it never
             // counts more than the disc.
-            assert!(area <= disc * 1.001, "{area} of {disc}");
+            assert!(area <= disc * 1.02, "{area} of {disc}");
             fullest = fullest.max(area / disc);
         }
         // The wall the lamp stands before holds its whole disc.
-        assert!(fullest > 0.999, "{fullest}");
+        assert!(fullest > 0.98, "{fullest}");
     }
 
     /// Thinned to any budget, the hot samples still stand for exactly the
