@@ -1157,7 +1157,7 @@ impl Technique for Pic {
         let surfels = bake.surfels.len();
         let mut entries = vec![
             MemoryEntry::new(
-                "surfels (position, normal, albedo, direct, area light, disc area)",
+                "surfels (position, normal, albedo, direct, area light, area)",
                 surfels * (12 * 5 + 4),
             ),
             MemoryEntry::new(
