@@ -137,11 +137,20 @@
 //!   it sees, or lights no one. A receiver looks four times its usual
 //!   reach for an anchor it sees before its VALs count as hidden (points
 //!   face it, none seen) or unanchored (seen by every point; the back of a
-//!   one-sided wall). Inside a lamp's shade, smaller than the points'
-//!   spacing, this loses light that leaves through the shade's opening
-//!   (a generated room with a shaded lamp: 0.6x the path tracer's one
-//!   bounce, from 1.05x); counting those VALs at every point instead lit
-//!   the shade's outside from a centimetre away (another: 24x).
+//!   one-sided wall).
+//! - The surfaces beside the scene file's lights (a shade's inside, the
+//!   patch of wall a few texels from a lamp: the final gather's hot
+//!   surfaces, [`relight_technique::NearLightSamples`]) are not gathered
+//!   through anchors. A shade's inside is smaller than the points'
+//!   spacing, so its VALs borrowed an anchor outside it, and a room seen
+//!   through a doorway got the shade's light whole or not at all with the
+//!   points' placement (generated suites of two rooms with a shaded lamp:
+//!   the unlit room's light swung from 0.36x to 0.99x of one bounce with
+//!   the points' seed). Their VALs are hidden, and each static point adds
+//!   the samples it sees, traced once at load (one shadow ray per static
+//!   point and sample in front of it, at most 4096 samples), weighted by
+//!   their form factors. Moving meshes' points and glossy light do not
+//!   see those surfaces.
 //! - Static surfaces shade from the irradiance lightmap: evaluating the
 //!   bilinear blend of neighbouring texels' averaged lights per pixel
 //!   (the paper's equation 10) gave blotches where those lights sit near
@@ -170,12 +179,13 @@ use geometry::Geometry;
 use glam::{Affine3A, Vec3};
 use points::{Anchor, Interpolation};
 use rayon::prelude::*;
+use relight_core::colour::luminance;
 use relight_core::Rgb;
 use relight_scene::{Light, Mesh, Scene};
 use relight_technique::{
     parse_params, with_scene_section, FinalGather, FinalGatherSettings, Frame, GatherReach,
-    MemoryEntry, Progress, SceneContext, StageTimings, SurfaceGather, SurfacePoint, Technique,
-    TechniqueError, TechniqueKind,
+    MemoryEntry, NearLightRows, NearLightSamples, Progress, SceneContext, StageTimings,
+    SurfaceGather, SurfacePoint, Technique, TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
@@ -539,6 +549,11 @@ pub struct LightSkin {
     lights: Vec<Light>,
     space_gather: SurfaceGather,
     final_gather: FinalGather,
+    /// The surfaces beside the scene file's lights, gathered by the static
+    /// points from explicit samples they were traced to at load rather
+    /// than from VALs through anchors (empty without `visibility`).
+    near_light: NearLightSamples,
+    near_light_rows: NearLightRows,
     timings: StageTimings,
 }
 
@@ -614,6 +629,16 @@ impl LightSkin {
         } else {
             PointVisibility::default()
         };
+        let near_light = if visibility.is_empty() {
+            NearLightSamples::default()
+        } else {
+            NearLightSamples::of(&context)
+        };
+        let near_light_rows = near_light.rows(
+            &context,
+            &sparse.positions[..static_points],
+            &sparse.normals[..static_points],
+        );
         let texel_interpolation = Interpolation::build(
             &context.atlas.receivers.positions,
             &context.atlas.receivers.normals,
@@ -701,6 +726,8 @@ impl LightSkin {
             lights: Vec::new(),
             space_gather: SurfaceGather::new(params.space_rays),
             final_gather,
+            near_light,
+            near_light_rows,
             params,
             context,
             timings: StageTimings::default(),
@@ -814,8 +841,39 @@ impl LightSkin {
     /// Anchors this frame's VALs to the static points that stand for them
     /// in visibility lookups.
     fn anchor_vals(&mut self) {
-        self.visibility
-            .anchor_vals(&mut self.vals, &self.context.atlas, &self.context.bvh);
+        let near_light = &self.near_light;
+        self.visibility.anchor_vals(
+            &mut self.vals,
+            &self.context.atlas,
+            &self.context.bvh,
+            |triangle, position| near_light.covers(triangle, position),
+        );
+    }
+
+    /// Adds the near-light samples each static point sees to its sums, as
+    /// VALs at the samples would add them.
+    fn gather_near_light(&mut self) {
+        let near_light = &self.near_light;
+        let rows = &self.near_light_rows;
+        let spread = self.params.occlusion;
+        self.sums[..self.static_points]
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(index, sums)| {
+                near_light.for_each_in_row(rows, index, |position, irradiance| {
+                    for (sum, channel) in sums.irradiance.iter_mut().zip(irradiance.to_array()) {
+                        *sum += channel;
+                    }
+                    let weight = luminance(irradiance);
+                    sums.weight += weight;
+                    for (axis, coordinate) in position.to_array().into_iter().enumerate() {
+                        sums.weighted_position[axis] += weight * coordinate;
+                        if spread {
+                            sums.weighted_square[axis] += weight * coordinate * coordinate;
+                        }
+                    }
+                });
+            });
     }
 
     fn gather_points(&mut self) {
@@ -854,6 +912,12 @@ impl LightSkin {
                     start = end;
                 }
             });
+        if !self.near_light.is_empty() {
+            self.gather_near_light();
+        }
+        let vals = &self.vals;
+        let positions = &self.points.positions;
+        let normals = &self.points.normals;
         // Finish equation 7: the averaged light position l'_d (and the light
         // sphere radius occlusion uses) once per point, for both later stages.
         let epsilon_weight = self.epsilon_weight();
@@ -1180,6 +1244,11 @@ impl Technique for LightSkin {
         if !self.visibility.is_empty() {
             timings.time("anchors", || self.anchor_vals());
         }
+        if !self.near_light.is_empty() {
+            timings.time("near-light samples", || {
+                self.near_light.light(&self.context, frame.lights)
+            });
+        }
         if !self.params.interpolation {
             timings.time("brute force", || self.brute_force_receivers());
             self.timings = timings;
@@ -1346,6 +1415,17 @@ impl Technique for LightSkin {
                 self.vertex_normals_local.len() * 12
                     + self.vertex_diffuse.memory_bytes()
                     + self.vertex_glossy.memory_bytes(),
+            ));
+        }
+        if !self.near_light.is_empty() {
+            entries.push(MemoryEntry::new(
+                format!(
+                    "near-light samples ({} on {} texel sides, seen by {} points)",
+                    self.near_light.len().0,
+                    self.near_light.len().1,
+                    self.near_light_rows.points_seeing()
+                ),
+                self.near_light.memory_bytes() + self.near_light_rows.memory_bytes(),
             ));
         }
         entries.extend(self.final_gather.memory_entry());

@@ -277,7 +277,18 @@ impl PointVisibility {
     /// shade's outside, a centimetre away (a generated suite of two rooms:
     /// 24x the path tracer's light), while hidden they leave the room
     /// darker than the path tracer's (another: 0.6x).
-    pub fn anchor_vals(&self, vals: &mut Vals, atlas: &Atlas, bvh: &Bvh) {
+    ///
+    /// VALs on surfaces that `near_light(triangle, position)` takes are
+    /// hidden too: the points gather those surfaces' light from explicit
+    /// samples instead (`relight_technique::NearLightSamples`).
+    pub fn anchor_vals(
+        &self,
+        vals: &mut Vals,
+        atlas: &Atlas,
+        bvh: &Bvh,
+        near_light: impl Fn(u32, Vec3) -> bool + Sync,
+    ) {
+        let hidden = self.hidden();
         let unanchored = self.unanchored();
         let width = atlas.width as i64;
         let height = atlas.height as i64;
@@ -292,6 +303,12 @@ impl PointVisibility {
             .for_each(|(index, anchor)| {
                 let triangle = vals_ref.site_triangle[index];
                 if triangle == NO_SITE || triangle as usize >= atlas.triangle_uvs.len() {
+                    return;
+                }
+                let position =
+                    Vec3::new(vals_ref.px[index], vals_ref.py[index], vals_ref.pz[index]);
+                if near_light(triangle, position) {
+                    *anchor = hidden;
                     return;
                 }
                 let uv = atlas.uv_of(triangle, vals_ref.site_barycentric[index]);

@@ -1274,7 +1274,43 @@ impl HotSurfaces {
         let normal = receivers.normals[index];
         let origin = receivers.positions[index] + normal * epsilon;
         let mut seen: Vec<(u64, f32)> = Vec::new();
-        for sample in &self.samples {
+        self.for_each_seen(context, origin, normal, epsilon, |sample, weight, back| {
+            let sample = &self.samples[sample];
+            let key = hit_key(
+                context,
+                receiver_of_texel,
+                sample.triangle,
+                sample.barycentric,
+                sample.normal,
+                back,
+            );
+            if key != MISS_KEY {
+                seen.push((key, weight));
+            }
+        });
+        seen.sort_unstable_by_key(|&(key, _)| key);
+        seen.dedup_by(|later, kept| {
+            let same = later.0 == kept.0;
+            if same {
+                kept.1 += later.1;
+            }
+            same
+        });
+        seen
+    }
+
+    /// Calls `seen(sample, form factor, back side seen)` for each sample
+    /// that a surface point at `origin` (already lifted off its surface)
+    /// with `normal` faces and sees.
+    fn for_each_seen(
+        &self,
+        context: &SceneContext,
+        origin: Vec3,
+        normal: Vec3,
+        epsilon: f32,
+        mut seen: impl FnMut(usize, f32, bool),
+    ) {
+        for (index, sample) in self.samples.iter().enumerate() {
             let to = sample.position - origin;
             let distance_squared = to.length_squared();
             let distance = distance_squared.sqrt();
@@ -1298,30 +1334,240 @@ impl HotSurfaces {
                 direction,
                 t_max: distance - epsilon,
             };
-            if context.bvh.occluded(&ray) {
-                continue;
-            }
-            let key = hit_key(
-                context,
-                receiver_of_texel,
-                sample.triangle,
-                sample.barycentric,
-                sample.normal,
-                facing < 0.0,
-            );
-            if key != MISS_KEY {
-                seen.push((key, weight));
+            if !context.bvh.occluded(&ray) {
+                seen(index, weight, facing < 0.0);
             }
         }
-        seen.sort_unstable_by_key(|&(key, _)| key);
-        seen.dedup_by(|later, kept| {
-            let same = later.0 == kept.0;
-            if same {
-                kept.1 += later.1;
-            }
-            same
-        });
-        seen
+    }
+}
+
+/// The surfaces beside the scene file's lights that [`FinalGather`] counts
+/// by explicit samples (see `HotSurfaces`), for a technique whose own
+/// points gather light by some other visibility: a sparse point that
+/// stands for a whole patch of wall sees a lamp's shade or its hot spot
+/// whole or not at all, so the light of the few brightest square
+/// centimetres in the room comes and goes with where its points fall.
+/// Such a technique leaves the light landing on [`Self::covers`] out of
+/// its own gather and adds the samples' light instead, each point
+/// weighting the samples it sees by their form factors, traced once
+/// ([`Self::rows`]). As in the final gather, a sample reads the light of
+/// its texel's side (the texel's footprint mean), so a row holds one
+/// entry per texel side it sees rather than one per sample: a point
+/// across the room needs the texel's light, not its sixteen samples'.
+#[derive(Default)]
+pub struct NearLightSamples {
+    hot: Option<HotSurfaces>,
+    /// Per sample and side (front at `2 * sample`, back after it): its
+    /// texel side, `MISS` where it has none.
+    texel_of_side: Vec<u32>,
+    /// Per texel side: where its light is taken, over what footprint.
+    positions: Vec<Vec3>,
+    normals: Vec<Vec3>,
+    areas: Vec<f32>,
+    albedos: Vec<Rgb>,
+    static_direct: StaticDirect,
+    /// Per frame and texel side: albedo times direct irradiance.
+    radiosity: Vec<Rgb>,
+    direct: Vec<Rgb>,
+}
+
+/// Explicit samples' form factors from a set of points: `offsets[i]..
+/// offsets[i + 1]` of `entries` are point i's (texel side, form factor).
+#[derive(Clone, Debug, Default)]
+pub struct NearLightRows {
+    offsets: Vec<u32>,
+    entries: Vec<(u32, f32)>,
+}
+
+impl NearLightRows {
+    pub fn memory_bytes(&self) -> usize {
+        self.offsets.len() * 4 + self.entries.len() * 8
+    }
+
+    /// How many points see at least one sample.
+    pub fn points_seeing(&self) -> usize {
+        self.offsets
+            .windows(2)
+            .filter(|pair| pair[1] > pair[0])
+            .count()
+    }
+}
+
+impl NearLightSamples {
+    /// The samples of `context`'s hot surfaces, as the final gather
+    /// places them (empty where no light stands near a surface).
+    pub fn of(context: &SceneContext) -> Self {
+        let hot = HotSurfaces::of(context, HOT_SAMPLE_BUDGET);
+        if hot.samples.is_empty() {
+            return Self::default();
+        }
+        let receiver_of_texel = context.atlas.dilated_receiver_of_texel();
+        let side_keys: Vec<u64> = hot
+            .samples
+            .iter()
+            .flat_map(|sample| {
+                [false, true].map(|back| {
+                    hit_key(
+                        context,
+                        &receiver_of_texel,
+                        sample.triangle,
+                        sample.barycentric,
+                        sample.normal,
+                        back,
+                    )
+                })
+            })
+            .collect();
+        let mut keys: Vec<u64> = side_keys
+            .iter()
+            .copied()
+            .filter(|&key| key != MISS_KEY)
+            .collect();
+        keys.sort_unstable();
+        keys.dedup();
+        let texel_of_side = side_keys
+            .iter()
+            .map(|key| keys.binary_search(key).map_or(MISS, |texel| texel as u32))
+            .collect();
+        let texels: Vec<SlotPoint> = keys
+            .iter()
+            .map(|&key| SlotPoint::of(context, &receiver_of_texel, key))
+            .collect();
+        let positions: Vec<Vec3> = texels.iter().map(|texel| texel.position).collect();
+        let normals: Vec<Vec3> = texels.iter().map(|texel| texel.normal).collect();
+        let mut static_direct = StaticDirect::default();
+        let _ = static_direct.at(&context.direct(), &positions, &normals);
+        Self {
+            hot: Some(hot),
+            texel_of_side,
+            areas: texels.iter().map(|texel| texel.area).collect(),
+            albedos: texels.iter().map(|texel| texel.albedo).collect(),
+            radiosity: vec![Rgb::ZERO; texels.len()],
+            direct: vec![Rgb::ZERO; texels.len()],
+            positions,
+            normals,
+            static_direct,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.hot.is_none()
+    }
+
+    /// How many samples, and how many texel sides they read.
+    pub fn len(&self) -> (usize, usize) {
+        (self.texel_of_side.len() / 2, self.positions.len())
+    }
+
+    /// Whether `point` on `triangle` lies on a surface the samples stand
+    /// for.
+    pub fn covers(&self, triangle: u32, point: Vec3) -> bool {
+        self.hot
+            .as_ref()
+            .is_some_and(|hot| hot.covers(triangle, point))
+    }
+
+    /// The samples each surface point (`positions`, `normals`) faces and
+    /// sees, with their form factors summed per texel side: one shadow ray
+    /// per point and sample in front of it.
+    pub fn rows(
+        &self,
+        context: &SceneContext,
+        positions: &[Vec3],
+        normals: &[Vec3],
+    ) -> NearLightRows {
+        let Some(hot) = &self.hot else {
+            return NearLightRows {
+                offsets: vec![0; positions.len() + 1],
+                entries: Vec::new(),
+            };
+        };
+        let epsilon = context.direct().ray_epsilon;
+        let rows: Vec<Vec<(u32, f32)>> = positions
+            .par_iter()
+            .zip(normals.par_iter())
+            .with_min_len(16)
+            .map(|(&position, &normal)| {
+                let mut row = Vec::new();
+                hot.for_each_seen(
+                    context,
+                    position + normal * epsilon,
+                    normal,
+                    epsilon,
+                    |sample, weight, back| {
+                        let texel = self.texel_of_side[2 * sample + usize::from(back)];
+                        if texel != MISS {
+                            row.push((texel, weight));
+                        }
+                    },
+                );
+                row.sort_unstable_by_key(|&(texel, _)| texel);
+                row.dedup_by(|later, kept| {
+                    let same = later.0 == kept.0;
+                    if same {
+                        kept.1 += later.1;
+                    }
+                    same
+                });
+                row
+            })
+            .collect();
+        let mut offsets = Vec::with_capacity(rows.len() + 1);
+        offsets.push(0u32);
+        let mut entries = Vec::with_capacity(rows.iter().map(Vec::len).sum());
+        for row in rows {
+            entries.extend(row);
+            offsets.push(entries.len() as u32);
+        }
+        NearLightRows { offsets, entries }
+    }
+
+    /// Lights the samples' texel sides under `lights` (the direct light
+    /// averaged over the texel's footprint, times the albedo): a shadow ray
+    /// per texel side and punctual light a frame.
+    pub fn light(&mut self, context: &SceneContext, lights: &[Light]) {
+        if self.is_empty() {
+            return;
+        }
+        self.static_direct.irradiance_batch_over_footprints(
+            &context.direct(),
+            lights,
+            &self.positions,
+            &self.normals,
+            &self.areas,
+            &mut self.direct,
+        );
+        for ((radiosity, direct), albedo) in self
+            .radiosity
+            .iter_mut()
+            .zip(&self.direct)
+            .zip(&self.albedos)
+        {
+            *radiosity = *direct * *albedo;
+        }
+    }
+
+    /// Calls `each(texel position, irradiance it sends)` for the texel
+    /// sides of `point`'s row, as last lit by [`Self::light`].
+    pub fn for_each_in_row(
+        &self,
+        rows: &NearLightRows,
+        point: usize,
+        mut each: impl FnMut(Vec3, Rgb),
+    ) {
+        let range = rows.offsets[point] as usize..rows.offsets[point + 1] as usize;
+        for &(texel, weight) in &rows.entries[range] {
+            let texel = texel as usize;
+            each(self.positions[texel], self.radiosity[texel] * weight);
+        }
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.texel_of_side.len() * 4
+            + self.positions.len() * (12 + 12 + 4 + 12 + 12 + 12)
+            + self.hot.as_ref().map_or(0, |hot| {
+                hot.triangles.len() + hot.balls.len() * 20 + hot.samples.len() * 40
+            })
     }
 }
 

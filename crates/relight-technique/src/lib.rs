@@ -94,7 +94,9 @@ pub use context::{
     build_atlas, fill_hidden_texels, relocate_receivers, ContextSettings, SceneContext,
 };
 pub use estimate::{available_bytes, format_bytes, parse_size, resident_bytes, BakeEstimate};
-pub use final_gather::{FinalGather, FinalGatherSettings, GatherReach};
+pub use final_gather::{
+    FinalGather, FinalGatherSettings, GatherReach, NearLightRows, NearLightSamples,
+};
 pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
