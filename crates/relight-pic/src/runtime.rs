@@ -2,6 +2,7 @@
 
 use crate::bake::PicBake;
 use crate::kernels::{self, LinkScratch, LinkSlice};
+use crate::near_light::NearLightLinks;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
@@ -105,6 +106,9 @@ pub struct Pic {
     updates: u64,
     /// The last frame's lights, for gathers at points in space.
     lights: Vec<Light>,
+    /// The surfaces beside the scene file's lights, which the lightmap
+    /// caches see through explicit samples (see [`crate::near_light`]).
+    near_light: NearLightLinks,
 }
 
 impl Pic {
@@ -204,6 +208,7 @@ impl Pic {
             timings: StageTimings::default(),
             updates: 0,
             lights: Vec::new(),
+            near_light: NearLightLinks::default(),
             cache_of_texel,
             own_atlas,
             final_gather: FinalGather::build(
@@ -228,6 +233,19 @@ impl Pic {
             })
             .collect();
         technique.find_hidden_taps();
+        let lightmap_caches = technique.bake.caches.lightmap_count;
+        technique.near_light = NearLightLinks::build(
+            &technique.context,
+            (
+                &technique.bake.caches.positions[..lightmap_caches],
+                &technique.bake.caches.normals[..lightmap_caches],
+            ),
+            (
+                &technique.bake.surfels.triangles,
+                &technique.bake.surfels.positions,
+            ),
+            technique.settings.bands,
+        );
         let (subtrees, top) = technique
             .bake
             .hierarchy
@@ -586,11 +604,19 @@ impl Pic {
         let direct = &self.surfel_direct;
         let area = &self.surfel_area_light;
         let (context, final_gather) = (&self.context, &self.final_gather);
+        let near_light = &self.near_light;
         self.flux[..surfels.len()]
             .par_iter_mut()
             .enumerate()
             .for_each(|(index, flux)| {
-                let mut irradiance = direct[index] + ycocg_to_rgb(area[index]);
+                // The caches see a hot surfel's direct light through the
+                // near-light samples.
+                let direct = if near_light.is_hot(index) {
+                    Rgb::ZERO
+                } else {
+                    direct[index]
+                };
+                let mut irradiance = direct + ycocg_to_rgb(area[index]);
                 if let Some(indirect) = &indirect {
                     // The near field the caches miss reaches the receivers
                     // through the final gather; without it here the surfels
@@ -653,6 +679,7 @@ impl Pic {
         let wide_kernel = projected_kernel::<u32>(bands);
         let narrow_kernel = projected_kernel::<u16>(bands);
         let narrow_nodes = &self.narrow_link_nodes;
+        let near_light = &self.near_light;
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
@@ -722,6 +749,11 @@ impl Pic {
                         }
                         for value in row.iter_mut() {
                             *value *= inverse_scale;
+                        }
+                        if !near_light.is_empty() {
+                            let (luma, rest) = row.split_at_mut(luma_count);
+                            let (co, cg) = rest.split_at_mut(chroma_count);
+                            near_light.add_to_cache(cache, luma, co, cg);
                         }
                     }
                 },
@@ -1030,6 +1062,7 @@ impl Technique for Pic {
         let mut receiver_time = Duration::ZERO;
         let start = Instant::now();
         self.direct_light(frame);
+        self.near_light.light(&self.context, frame.lights);
         surfel_time += start.elapsed();
         let start = Instant::now();
         self.final_gather.light_hits(&self.context, &self.lights);
@@ -1191,6 +1224,15 @@ impl Technique for Pic {
                     + self.hidden_tap_index.len() * 4
                     + self.tap_correction.len() * 12
                     + self.tap_dilation.len() * 8,
+            ));
+        }
+        if !self.near_light.is_empty() {
+            let (samples, texels, caches) = self.near_light.counts();
+            entries.push(MemoryEntry::new(
+                format!(
+                    "near-light samples ({samples} on {texels} texel sides, seen by {caches} caches)"
+                ),
+                self.near_light.memory_bytes(),
             ));
         }
         entries.extend(self.final_gather.memory_entry());

@@ -1384,6 +1384,11 @@ impl NearLightRows {
         self.offsets.len() * 4 + self.entries.len() * 8
     }
 
+    /// Point `point`'s (texel side, form factor) entries.
+    pub fn row(&self, point: usize) -> &[(u32, f32)] {
+        &self.entries[self.offsets[point] as usize..self.offsets[point + 1] as usize]
+    }
+
     /// How many points see at least one sample.
     pub fn points_seeing(&self) -> usize {
         self.offsets
@@ -1555,11 +1560,21 @@ impl NearLightSamples {
         point: usize,
         mut each: impl FnMut(Vec3, Rgb),
     ) {
-        let range = rows.offsets[point] as usize..rows.offsets[point + 1] as usize;
-        for &(texel, weight) in &rows.entries[range] {
+        for &(texel, weight) in rows.row(point) {
             let texel = texel as usize;
             each(self.positions[texel], self.radiosity[texel] * weight);
         }
+    }
+
+    /// Where each texel side's light is taken.
+    pub fn texel_positions(&self) -> &[Vec3] {
+        &self.positions
+    }
+
+    /// Each texel side's albedo times direct irradiance, as last lit by
+    /// [`Self::light`].
+    pub fn radiosity(&self) -> &[Rgb] {
+        &self.radiosity
     }
 
     pub fn memory_bytes(&self) -> usize {
