@@ -148,9 +148,10 @@
 //!   the unlit room's light swung from 0.36x to 0.99x of one bounce with
 //!   the points' seed). Their VALs are hidden, and each static point adds
 //!   the samples it sees, traced once at load (one shadow ray per static
-//!   point and sample in front of it, at most 4096 samples), weighted by
-//!   their form factors. Moving meshes' points and glossy light do not
-//!   see those surfaces.
+//!   point and sample in front of it; the final gather caps the samples a
+//!   scene has), weighted by their form factors. Moving meshes' points and
+//!   glossy light do not see those surfaces, and with `occlusion` on the
+//!   disc occlusion dims the samples' light too, though it was traced.
 //! - Static surfaces shade from the irradiance lightmap: evaluating the
 //!   bilinear blend of neighbouring texels' averaged lights per pixel
 //!   (the paper's equation 10) gave blotches where those lights sit near
@@ -1421,8 +1422,8 @@ impl Technique for LightSkin {
             entries.push(MemoryEntry::new(
                 format!(
                     "near-light samples ({} on {} texel sides, seen by {} points)",
-                    self.near_light.len().0,
-                    self.near_light.len().1,
+                    self.near_light.counts().0,
+                    self.near_light.counts().1,
                     self.near_light_rows.points_seeing()
                 ),
                 self.near_light.memory_bytes() + self.near_light_rows.memory_bytes(),

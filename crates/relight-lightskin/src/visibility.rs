@@ -272,11 +272,13 @@ impl PointVisibility {
     /// the room gather it. Such a VAL takes the nearest point facing its
     /// side that it sees, or is hidden.
     ///
-    /// Hidden rather than unanchored: inside a lamp's shade, smaller than
-    /// the points' spacing, VALs seen by every point lit the points on the
-    /// shade's outside, a centimetre away (a generated suite of two rooms:
-    /// 24x the path tracer's light), while hidden they leave the room
-    /// darker than the path tracer's (another: 0.6x).
+    /// Hidden rather than unanchored: a VAL that sees no point near it is
+    /// on a surface the room's points do not see either (a wall plane
+    /// running on past a corner, outside the building); seen by every
+    /// point, the VALs inside a lamp's shade lit the points on the shade's
+    /// outside, a centimetre away (a generated suite of two rooms: 24x the
+    /// path tracer's light). The shade's inside is now the near-light
+    /// samples' (below).
     ///
     /// VALs on surfaces that `near_light(triangle, position)` takes are
     /// hidden too: the points gather those surfaces' light from explicit

@@ -195,7 +195,8 @@
 //!   light the next room got (a generated suite with a lamp in a shade
 //!   open on two sides: 1.14x of the path tracer's light, 1.03x with the
 //!   samples). Each lightmap cache traces the samples once at load; the
-//!   grid caches get none of it. Two limits remain. Rooms lit through a
+//!   grid caches lose those surfaces' first bounce, which the links no
+//!   longer carry. Two limits remain. Rooms lit through a
 //!   doorway by a shaded lamp are still 0.79-0.84x on two suites, where
 //!   one bounce is 0.89x and tracing every texel (`final_gather=inf`)
 //!   gives 0.93x, so the rest is the caches' loss over bounces; a bright

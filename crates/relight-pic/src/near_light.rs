@@ -1,14 +1,13 @@
 //! The surfaces beside the scene file's lights (a shade's inside, the
 //! patch of wall a few texels from a lamp), which the lightmap caches see
-//! through explicit samples rather than through the links.
+//! through explicit samples rather than through the caches.
 //!
 //! A cache's links go to the nodes of largest visible solid angle, chosen
 //! at bake without the lights, and each link's factor averages the
 //! visibility of a few of its node's surfels. A shade's inside is a few
 //! surfels of a node that also holds the wall or ceiling around it, so
 //! whether the next room's caches see the shade's light depended on which
-//! surfels the factor sampled (generated suites with a shaded lamp: PIC
-//! `high` 0.78x of the path tracer's light in the unlit room). Here each
+//! surfels the factor sampled. Here each
 //! lightmap cache traces, once at load, the final gather's explicit samples
 //! of those surfaces ([`relight_technique::NearLightSamples`]), and every
 //! frame adds their light to its SH; the surfels there leave their direct
@@ -16,16 +15,19 @@
 //!
 //! A cache's entries are grouped by the scene-file light nearest each
 //! texel side, and each group is projected along one direction (the
-//! entries' weighted mean): the caches' four or fewer SH bands resolve
+//! entries' weighted mean): the presets' three or four SH bands resolve
 //! about 45 degrees, wider than a shade or a hot patch seen from a cache
 //! that does not gather it by the final gather. The group's SH is scaled
 //! so that the cache's own lookup (its normal, the cosine lobe) returns
-//! the form factors' irradiance exactly: the band-limited lobe is 0.09
-//! where the true one is 0 at the horizon, so light projected as radiance
-//! from a hot patch seen at a grazing angle (the next wall of a lamp's
-//! corner) would come back too bright.
+//! the form factors' irradiance exactly, luma and chroma each at its own
+//! bands: the band-limited lobe is 0.09 where the true one is 0 at the
+//! horizon, so light projected as radiance from a hot patch seen at a
+//! grazing angle (the next wall of a lamp's corner) came back too bright.
+//! Other lookups of the same cache (a neighbouring texel's normal across a
+//! curved surface, glossy reflection) read that scaled SH as it is.
 //!
-//! Grid caches (points in space with `space = grid`) get none of this.
+//! Grid caches (points in space with `space = grid`) lose those surfaces'
+//! first bounce: they read the links, which no longer carry it.
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -43,31 +45,36 @@ struct CacheGroups {
 }
 
 #[derive(Default)]
-pub struct NearLightLinks {
+pub struct NearLightCaches {
     samples: NearLightSamples,
-    bands: usize,
+    /// Luma and chroma SH coefficients per cache (`bands^2`, `chroma^2`).
+    luma_count: usize,
+    chroma_count: usize,
     /// Per lightmap cache: its groups, `cache_groups[c]..cache_groups[c + 1]`.
     cache_groups: Vec<u32>,
-    /// Per group: Y_lm of its direction (`bands^2` values) and its entries,
+    /// Per group: Y_lm of its direction, scaled for luma (`luma_count`
+    /// values) and for chroma (`chroma_count`), and its entries,
     /// `group_entries[g]..group_entries[g + 1]`.
     group_basis: Vec<f32>,
     group_entries: Vec<u32>,
     /// (texel side, form factor): the irradiance its radiosity gives the
     /// cache.
     entries: Vec<(u32, f32)>,
-    /// Per surfel: whether its direct light reaches the caches through the
-    /// samples instead of the links.
+    /// Per surfel: whether its direct and emissive light reach the caches
+    /// through the samples instead of the caches.
     hot_surfels: Vec<bool>,
 }
 
-impl NearLightLinks {
+impl NearLightCaches {
     /// `caches`: the lightmap caches' positions and normals; `surfels`:
-    /// the surfels' triangles and positions.
+    /// the surfels' triangles and positions; `bands` for luma and
+    /// chroma, and the cosine lobe's factors that the caches' lookups use.
     pub fn build(
         context: &SceneContext,
         caches: (&[Vec3], &[Vec3]),
         surfels: (&[u32], &[Vec3]),
-        bands: usize,
+        (bands, chroma_bands): (usize, usize),
+        cosine_factors: &[f32; sh::MAX_BANDS],
     ) -> Self {
         let samples = NearLightSamples::of(context);
         if samples.is_empty() {
@@ -79,7 +86,7 @@ impl NearLightLinks {
             .iter()
             .filter_map(Light::position)
             .collect();
-        let light_of_texel: Vec<u32> = samples
+        let light_of_side: Vec<u32> = samples
             .texel_positions()
             .iter()
             .map(|&position| {
@@ -94,9 +101,9 @@ impl NearLightLinks {
             .collect();
         let (positions, normals) = caches;
         let rows = samples.rows(context, positions, normals);
-        let coefficients = bands * bands;
+        let luma_count = bands * bands;
+        let chroma_count = chroma_bands * chroma_bands;
         let texel_positions = samples.texel_positions();
-        let cosine_factors: [f32; sh::MAX_BANDS] = std::array::from_fn(sh::cosine_lobe_factor);
         // Per cache: its groups' bases and entries, built in parallel.
         let per_cache: Vec<CacheGroups> = (0..positions.len())
             .into_par_iter()
@@ -107,17 +114,27 @@ impl NearLightLinks {
                     .map(|&(texel, form_factor)| {
                         let direction = (texel_positions[texel as usize] - positions[cache])
                             .normalize_or_zero();
-                        (
-                            light_of_texel[texel as usize],
-                            texel,
-                            form_factor,
-                            direction,
-                        )
+                        (light_of_side[texel as usize], texel, form_factor, direction)
                     })
                     .collect();
                 row.sort_unstable_by_key(|&(light, texel, ..)| (light, texel));
-                let mut lobe = vec![0.0f32; coefficients];
-                sh::evaluate_filtered(normals[cache], bands, &cosine_factors, &mut lobe);
+                let mut lobe = vec![0.0f32; luma_count];
+                sh::evaluate_filtered(normals[cache], bands, cosine_factors, &mut lobe);
+                // What a unit of radiance along `values`' direction gives
+                // the cache's own cosine lookup over its first `count`
+                // coefficients, inverted.
+                let unit_scale = |values: &[f32], count: usize| {
+                    let lookup: f32 = values[..count]
+                        .iter()
+                        .zip(&lobe[..count])
+                        .map(|(y, l)| y * l)
+                        .sum();
+                    if lookup > 0.0 {
+                        1.0 / lookup
+                    } else {
+                        0.0
+                    }
+                };
                 let mut basis = Vec::new();
                 let mut ends = Vec::new();
                 let mut entries = Vec::with_capacity(row.len());
@@ -130,12 +147,12 @@ impl NearLightLinks {
                         .map(|&(_, _, factor, direction)| direction * factor)
                         .sum::<Vec3>()
                         .normalize_or_zero();
-                    let mut values = vec![0.0f32; coefficients];
+                    let mut values = vec![0.0f32; luma_count];
                     sh::evaluate(direction, bands, &mut values);
-                    // Unit irradiance at the cache's own normal.
-                    let lookup: f32 = values.iter().zip(&lobe).map(|(y, l)| y * l).sum();
-                    let scale = if lookup > 1e-3 { 1.0 / lookup } else { 0.0 };
-                    basis.extend(values.iter().map(|y| y * scale));
+                    let luma_scale = unit_scale(&values, luma_count);
+                    let chroma_scale = unit_scale(&values, chroma_count);
+                    basis.extend(values.iter().map(|y| y * luma_scale));
+                    basis.extend(values[..chroma_count].iter().map(|y| y * chroma_scale));
                     entries.extend(
                         row[start..end]
                             .iter()
@@ -151,37 +168,38 @@ impl NearLightLinks {
                 }
             })
             .collect();
-        let mut links = Self {
-            bands,
+        let mut caches = Self {
+            luma_count,
+            chroma_count,
             cache_groups: Vec::with_capacity(positions.len() + 1),
             group_entries: vec![0],
             ..Self::default()
         };
-        links.cache_groups.push(0);
+        caches.cache_groups.push(0);
         for CacheGroups {
             basis,
             ends,
             entries,
         } in per_cache
         {
-            let base = links.entries.len() as u32;
-            links.group_basis.extend(basis);
-            links
+            let base = caches.entries.len() as u32;
+            caches.group_basis.extend(basis);
+            caches
                 .group_entries
                 .extend(ends.iter().map(|&end| base + end));
-            links.entries.extend(entries);
-            links
+            caches.entries.extend(entries);
+            caches
                 .cache_groups
-                .push(links.group_entries.len() as u32 - 1);
+                .push(caches.group_entries.len() as u32 - 1);
         }
         let (triangles, surfel_positions) = surfels;
-        links.hot_surfels = triangles
+        caches.hot_surfels = triangles
             .par_iter()
             .zip(surfel_positions.par_iter())
             .map(|(&triangle, &position)| samples.covers(triangle, position))
             .collect();
-        links.samples = samples;
-        links
+        caches.samples = samples;
+        caches
     }
 
     pub fn is_empty(&self) -> bool {
@@ -193,7 +211,8 @@ impl NearLightLinks {
         self.samples.light(context, lights);
     }
 
-    /// Whether surfel `index`'s direct light is the samples' to carry.
+    /// Whether surfel `index`'s direct and emissive light are the samples'
+    /// to carry.
     pub fn is_hot(&self, surfel: usize) -> bool {
         self.hot_surfels.get(surfel).copied().unwrap_or(false)
     }
@@ -206,7 +225,7 @@ impl NearLightLinks {
             return;
         };
         let radiosity = self.samples.radiosity();
-        let coefficients = self.bands * self.bands;
+        let stride = self.luma_count + self.chroma_count;
         for group in range[0] as usize..range[1] as usize {
             let entries =
                 self.group_entries[group] as usize..self.group_entries[group + 1] as usize;
@@ -215,11 +234,12 @@ impl NearLightLinks {
                 .map(|&(texel, factor)| radiosity[texel as usize] * factor)
                 .sum();
             let light = rgb_to_ycocg(light);
-            let basis = &self.group_basis[group * coefficients..(group + 1) * coefficients];
-            for (value, &y) in luma.iter_mut().zip(basis) {
+            let basis = &self.group_basis[group * stride..(group + 1) * stride];
+            let (luma_basis, chroma_basis) = basis.split_at(self.luma_count);
+            for (value, &y) in luma.iter_mut().zip(luma_basis) {
                 *value += light.x * y;
             }
-            for ((co, cg), &y) in co.iter_mut().zip(cg.iter_mut()).zip(basis) {
+            for ((co, cg), &y) in co.iter_mut().zip(cg.iter_mut()).zip(chroma_basis) {
                 *co += light.y * y;
                 *cg += light.z * y;
             }
@@ -228,7 +248,7 @@ impl NearLightLinks {
 
     /// How many samples, texel sides and caches that see some.
     pub fn counts(&self) -> (usize, usize, usize) {
-        let (samples, texels) = self.samples.len();
+        let (samples, texels) = self.samples.counts();
         let caches = self
             .cache_groups
             .windows(2)

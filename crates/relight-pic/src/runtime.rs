@@ -2,7 +2,7 @@
 
 use crate::bake::PicBake;
 use crate::kernels::{self, LinkScratch, LinkSlice};
-use crate::near_light::NearLightLinks;
+use crate::near_light::NearLightCaches;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
@@ -108,7 +108,7 @@ pub struct Pic {
     lights: Vec<Light>,
     /// The surfaces beside the scene file's lights, which the lightmap
     /// caches see through explicit samples (see [`crate::near_light`]).
-    near_light: NearLightLinks,
+    near_light: NearLightCaches,
 }
 
 impl Pic {
@@ -208,7 +208,7 @@ impl Pic {
             timings: StageTimings::default(),
             updates: 0,
             lights: Vec::new(),
-            near_light: NearLightLinks::default(),
+            near_light: NearLightCaches::default(),
             cache_of_texel,
             own_atlas,
             final_gather: FinalGather::build(
@@ -234,7 +234,7 @@ impl Pic {
             .collect();
         technique.find_hidden_taps();
         let lightmap_caches = technique.bake.caches.lightmap_count;
-        technique.near_light = NearLightLinks::build(
+        technique.near_light = NearLightCaches::build(
             &technique.context,
             (
                 &technique.bake.caches.positions[..lightmap_caches],
@@ -244,7 +244,8 @@ impl Pic {
                 &technique.bake.surfels.triangles,
                 &technique.bake.surfels.positions,
             ),
-            technique.settings.bands,
+            (technique.settings.bands, technique.settings.chroma_bands),
+            &technique.cosine_factors,
         );
         let (subtrees, top) = technique
             .bake
@@ -609,14 +610,13 @@ impl Pic {
             .par_iter_mut()
             .enumerate()
             .for_each(|(index, flux)| {
-                // The caches see a hot surfel's direct light through the
-                // near-light samples.
-                let direct = if near_light.is_hot(index) {
+                // The caches see a hot surfel's direct light, emissive
+                // surfaces' included, through the near-light samples.
+                let mut irradiance = if near_light.is_hot(index) {
                     Rgb::ZERO
                 } else {
-                    direct[index]
+                    direct[index] + ycocg_to_rgb(area[index])
                 };
-                let mut irradiance = direct + ycocg_to_rgb(area[index]);
                 if let Some(indirect) = &indirect {
                     // The near field the caches miss reaches the receivers
                     // through the final gather; without it here the surfels

@@ -1288,14 +1288,7 @@ impl HotSurfaces {
                 seen.push((key, weight));
             }
         });
-        seen.sort_unstable_by_key(|&(key, _)| key);
-        seen.dedup_by(|later, kept| {
-            let same = later.0 == kept.0;
-            if same {
-                kept.1 += later.1;
-            }
-            same
-        });
+        sum_by_key(&mut seen);
         seen
     }
 
@@ -1353,7 +1346,7 @@ impl HotSurfaces {
 /// ([`Self::rows`]). As in the final gather, a sample reads the light of
 /// its texel's side (the texel's footprint mean), so a row holds one
 /// entry per texel side it sees rather than one per sample: a point
-/// across the room needs the texel's light, not its sixteen samples'.
+/// across the room needs the texel's light, not each of its samples'.
 #[derive(Default)]
 pub struct NearLightSamples {
     hot: Option<HotSurfaces>,
@@ -1441,6 +1434,7 @@ impl NearLightSamples {
         let positions: Vec<Vec3> = texels.iter().map(|texel| texel.position).collect();
         let normals: Vec<Vec3> = texels.iter().map(|texel| texel.normal).collect();
         let mut static_direct = StaticDirect::default();
+        // Traced here, at load, rather than by the first frame.
         let _ = static_direct.at(&context.direct(), &positions, &normals);
         Self {
             hot: Some(hot),
@@ -1460,7 +1454,7 @@ impl NearLightSamples {
     }
 
     /// How many samples, and how many texel sides they read.
-    pub fn len(&self) -> (usize, usize) {
+    pub fn counts(&self) -> (usize, usize) {
         (self.texel_of_side.len() / 2, self.positions.len())
     }
 
@@ -1487,6 +1481,7 @@ impl NearLightSamples {
                 entries: Vec::new(),
             };
         };
+        debug_assert_eq!(positions.len(), normals.len());
         let epsilon = context.direct().ray_epsilon;
         let rows: Vec<Vec<(u32, f32)>> = positions
             .par_iter()
@@ -1506,14 +1501,7 @@ impl NearLightSamples {
                         }
                     },
                 );
-                row.sort_unstable_by_key(|&(texel, _)| texel);
-                row.dedup_by(|later, kept| {
-                    let same = later.0 == kept.0;
-                    if same {
-                        kept.1 += later.1;
-                    }
-                    same
-                });
+                sum_by_key(&mut row);
                 row
             })
             .collect();
@@ -1578,12 +1566,26 @@ impl NearLightSamples {
     }
 
     pub fn memory_bytes(&self) -> usize {
+        // Per texel side: position, normal, area, albedo, static direct
+        // light, direct light, radiosity.
         self.texel_of_side.len() * 4
-            + self.positions.len() * (12 + 12 + 4 + 12 + 12 + 12)
+            + self.positions.len() * (12 + 12 + 4 + 12 + 12 + 12 + 12)
             + self.hot.as_ref().map_or(0, |hot| {
                 hot.triangles.len() + hot.balls.len() * 20 + hot.samples.len() * 40
             })
     }
+}
+
+/// Sorts (key, weight) pairs by key and merges each key's weights into one.
+fn sum_by_key<K: Ord + Copy>(pairs: &mut Vec<(K, f32)>) {
+    pairs.sort_unstable_by_key(|&(key, _)| key);
+    pairs.dedup_by(|later, kept| {
+        let same = later.0 == kept.0;
+        if same {
+            kept.1 += later.1;
+        }
+        same
+    });
 }
 
 /// Gather ray `sample` of receiver `index`. Each receiver shifts the
