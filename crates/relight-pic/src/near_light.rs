@@ -80,25 +80,7 @@ impl NearLightCaches {
         if samples.is_empty() {
             return Self::default();
         }
-        let lights: Vec<Vec3> = context
-            .scene
-            .lights
-            .iter()
-            .filter_map(Light::position)
-            .collect();
-        let light_of_side: Vec<u32> = samples
-            .texel_positions()
-            .iter()
-            .map(|&position| {
-                (0..lights.len())
-                    .min_by(|&a, &b| {
-                        position
-                            .distance_squared(lights[a])
-                            .total_cmp(&position.distance_squared(lights[b]))
-                    })
-                    .unwrap_or(0) as u32
-            })
-            .collect();
+        let light_of_side = samples.light_of_side();
         let (positions, normals) = caches;
         let rows = samples.rows(context, positions, normals);
         let luma_count = bands * bands;

@@ -1078,12 +1078,7 @@ fn near_light_discs(
     context: &SceneContext,
     scale_of: &(impl Fn(usize) -> f32 + Sync),
 ) -> Vec<HotDisc> {
-    let lights: Vec<Vec3> = context
-        .scene
-        .lights
-        .iter()
-        .filter_map(Light::position)
-        .collect();
+    let lights = scene_file_light_positions(context);
     let mesh = &context.scene.mesh;
     if lights.is_empty() {
         return Vec::new();
@@ -1133,6 +1128,16 @@ fn near_light_discs(
                 })
             })
         })
+        .collect()
+}
+
+/// Where the scene file's point and spot lights stand, in its order.
+fn scene_file_light_positions(context: &SceneContext) -> Vec<Vec3> {
+    context
+        .scene
+        .lights
+        .iter()
+        .filter_map(Light::position)
         .collect()
 }
 
@@ -1353,8 +1358,10 @@ pub struct NearLightSamples {
     /// Per sample and side (front at `2 * sample`, back after it): its
     /// texel side, `MISS` where it has none.
     texel_of_side: Vec<u32>,
-    /// Per texel side: where its light is taken, over what footprint.
+    /// Per texel side: where its light is taken, over what footprint,
+    /// and the scene-file light nearest it.
     positions: Vec<Vec3>,
+    light_of_side: Vec<u32>,
     normals: Vec<Vec3>,
     areas: Vec<f32>,
     albedos: Vec<Rgb>,
@@ -1432,6 +1439,19 @@ impl NearLightSamples {
             .map(|&key| SlotPoint::of(context, &receiver_of_texel, key))
             .collect();
         let positions: Vec<Vec3> = texels.iter().map(|texel| texel.position).collect();
+        let lights = scene_file_light_positions(context);
+        let light_of_side = positions
+            .iter()
+            .map(|&position| {
+                (0..lights.len())
+                    .min_by(|&a, &b| {
+                        position
+                            .distance_squared(lights[a])
+                            .total_cmp(&position.distance_squared(lights[b]))
+                    })
+                    .map_or(0, |light| light as u32)
+            })
+            .collect();
         let normals: Vec<Vec3> = texels.iter().map(|texel| texel.normal).collect();
         let mut static_direct = StaticDirect::default();
         // Traced here, at load, rather than by the first frame.
@@ -1444,6 +1464,7 @@ impl NearLightSamples {
             radiosity: vec![Rgb::ZERO; texels.len()],
             direct: vec![Rgb::ZERO; texels.len()],
             positions,
+            light_of_side,
             normals,
             static_direct,
         }
@@ -1559,6 +1580,12 @@ impl NearLightSamples {
         &self.positions
     }
 
+    /// Each texel side's nearest point or spot light of the scene file (its
+    /// index among those lights).
+    pub fn light_of_side(&self) -> &[u32] {
+        &self.light_of_side
+    }
+
     /// Each texel side's albedo times direct irradiance, as last lit by
     /// [`Self::light`].
     pub fn radiosity(&self) -> &[Rgb] {
@@ -1566,10 +1593,10 @@ impl NearLightSamples {
     }
 
     pub fn memory_bytes(&self) -> usize {
-        // Per texel side: position, normal, area, albedo, static direct
-        // light, direct light, radiosity.
+        // Per texel side: position, nearest light, normal, area, albedo,
+        // static direct light, direct light, radiosity.
         self.texel_of_side.len() * 4
-            + self.positions.len() * (12 + 12 + 4 + 12 + 12 + 12 + 12)
+            + self.positions.len() * (12 + 4 + 12 + 4 + 12 + 12 + 12 + 12)
             + self.hot.as_ref().map_or(0, |hot| {
                 hot.triangles.len() + hot.balls.len() * 20 + hot.samples.len() * 40
             })
