@@ -193,7 +193,7 @@
 //!   (see [`near_light`]): a link's factor samples a few of its node's
 //!   surfels, and whether they were the shade's decided how much of its
 //!   light the next room got (a generated suite with a lamp in a shade
-//!   open on two sides: 1.14x of the path tracer's light, 1.03x with the
+//!   open on two sides: 1.14x of the path tracer's light, 1.04x with the
 //!   samples). Each lightmap cache traces the samples once at load; the
 //!   grid caches lose those surfaces' first bounce, which the links no
 //!   longer carry. Two limits remain. Rooms lit through a

@@ -828,7 +828,7 @@ fn no_cache_links_more_than_its_hemisphere() {
 /// --preset high --first 13 --variants 1 --reference-spp 2048`), 8x8
 /// tiles 21.6 %. The lightmap caches now see the surfaces beside the lamp
 /// through the final gather's explicit samples, traced at load, and those
-/// surfels leave their direct light out of the links: 1.029x, 10.1 %
+/// surfels leave their direct light out of the links: 1.039x, 9.6 %
 /// (1.063x at the study's 256 paths).
 /// Bound: the 0.85-1.15x in an unlit room, at the study's 256
 /// paths.
