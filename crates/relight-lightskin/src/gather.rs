@@ -48,6 +48,29 @@ impl Sums {
     pub fn irradiance(&self) -> Rgb {
         Rgb::from_array(self.irradiance)
     }
+
+    /// Adds one light's `irradiance` arriving from `position` (with its
+    /// squares `position_sq`), weighted `weight` in the averaged light;
+    /// `SPREAD` also sums the weighted squares.
+    #[inline]
+    pub fn add<const SPREAD: bool>(
+        &mut self,
+        irradiance: [f32; 3],
+        weight: f32,
+        position: [f32; 3],
+        position_sq: [f32; 3],
+    ) {
+        for (sum, value) in self.irradiance.iter_mut().zip(irradiance) {
+            *sum += value;
+        }
+        self.weight += weight;
+        for axis in 0..3 {
+            self.weighted_position[axis] += weight * position[axis];
+            if SPREAD {
+                self.weighted_square[axis] += weight * position_sq[axis];
+            }
+        }
+    }
 }
 
 /// Smallest squared distance the kernel divides by: keeps a VAL that sits
@@ -100,19 +123,16 @@ pub fn accumulate_portable<const SPREAD: bool>(
         let cos_receiver = -(normal.x * vx + normal.y * vy + normal.z * vz);
         let geometry =
             cos_val * cos_receiver.max(0.0) / (distance_sq * (vals.radius_sq[j] + distance_sq));
-        sums.irradiance[0] += vals.power_r[j] * geometry;
-        sums.irradiance[1] += vals.power_g[j] * geometry;
-        sums.irradiance[2] += vals.power_b[j] * geometry;
-        let weight = vals.power_luminance[j] * geometry;
-        sums.weight += weight;
-        let p = [vals.px[j], vals.py[j], vals.pz[j]];
-        let p_sq = [vals.px_sq[j], vals.py_sq[j], vals.pz_sq[j]];
-        for axis in 0..3 {
-            sums.weighted_position[axis] += weight * p[axis];
-            if SPREAD {
-                sums.weighted_square[axis] += weight * p_sq[axis];
-            }
-        }
+        sums.add::<SPREAD>(
+            [
+                vals.power_r[j] * geometry,
+                vals.power_g[j] * geometry,
+                vals.power_b[j] * geometry,
+            ],
+            vals.power_luminance[j] * geometry,
+            [vals.px[j], vals.py[j], vals.pz[j]],
+            [vals.px_sq[j], vals.py_sq[j], vals.pz_sq[j]],
+        );
     }
 }
 

@@ -862,17 +862,18 @@ impl LightSkin {
             .enumerate()
             .for_each(|(index, sums)| {
                 near_light.for_each_in_row(rows, index, |position, irradiance| {
-                    for (sum, channel) in sums.irradiance.iter_mut().zip(irradiance.to_array()) {
-                        *sum += channel;
-                    }
-                    let weight = luminance(irradiance);
-                    sums.weight += weight;
-                    for (axis, coordinate) in position.to_array().into_iter().enumerate() {
-                        sums.weighted_position[axis] += weight * coordinate;
-                        if spread {
-                            sums.weighted_square[axis] += weight * coordinate * coordinate;
-                        }
-                    }
+                    let add = if spread {
+                        Sums::add::<true>
+                    } else {
+                        Sums::add::<false>
+                    };
+                    add(
+                        sums,
+                        irradiance.to_array(),
+                        luminance(irradiance),
+                        position.to_array(),
+                        (position * position).to_array(),
+                    );
                 });
             });
     }

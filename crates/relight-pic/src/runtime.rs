@@ -13,6 +13,7 @@ use relight_technique::{
     FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
     StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
+use relight_trace::direct::Footprints;
 use std::f32::consts::PI;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -81,10 +82,6 @@ pub struct Pic {
     /// The surfels' direct light that no frame changes (the environment,
     /// and emissive triangles unless they light through the links).
     surfel_static: relight_trace::direct::StaticDirect,
-    /// Each surfel's area (m^2), over which its direct light is the mean:
-    /// a surfel beside a lamp stands for its patch, not the 1/d^2 at its
-    /// centre.
-    surfel_areas: Vec<f32>,
     /// Last frame's indirect irradiance at each surfel (YCoCg), reused.
     surfel_indirect: Vec<Vec3>,
     /// A_l of the clamped cosine lobe, per band.
@@ -196,7 +193,6 @@ impl Pic {
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
             surfel_static: Default::default(),
-            surfel_areas: vec![surfels.area; surfels.len()],
             surfel_indirect: vec![Vec3::ZERO; surfels.len()],
             cosine_factors,
             flux,
@@ -589,7 +585,9 @@ impl Pic {
             frame.lights,
             &surfels.positions,
             &surfels.normals,
-            &self.surfel_areas,
+            // A surfel beside a lamp stands for its patch, not the 1/d^2
+            // at its centre: its direct light is the patch's mean.
+            Footprints::All(surfels.area),
             &mut self.surfel_direct,
         );
     }
@@ -1190,8 +1188,8 @@ impl Technique for Pic {
         let surfels = bake.surfels.len();
         let mut entries = vec![
             MemoryEntry::new(
-                "surfels (position, normal, albedo, direct, area light, area)",
-                surfels * (12 * 5 + 4),
+                "surfels (position, normal, albedo, direct, area light)",
+                surfels * (12 * 5),
             ),
             MemoryEntry::new(
                 "hierarchy (children, leaf ranges)",

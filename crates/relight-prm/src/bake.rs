@@ -15,7 +15,7 @@ use relight_technique::{
     join_parts, shards_disagree, BakeEstimate, BakePart, PayloadReader, PayloadWriter, Progress,
     SceneContext, Shard, TechniqueError,
 };
-use relight_trace::direct::DirectLight;
+use relight_trace::direct::{DirectLight, Footprints};
 use relight_trace::Ray;
 
 /// Payload layout version; bump when the encoding changes.
@@ -1197,7 +1197,7 @@ fn irradiance_under_scene_lights(context: &SceneContext, entries: &Entries) -> V
         &context.scene.lights,
         &entries.positions,
         &entries.normals,
-        &entries.areas,
+        Footprints::Each(&entries.areas),
         None,
         &mut irradiance,
     );

@@ -11,7 +11,7 @@ use relight_technique::{
     FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
     SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
-use relight_trace::direct::{DirectLight, DirectSettings, StaticDirect};
+use relight_trace::direct::{DirectLight, DirectSettings, Footprints, StaticDirect};
 use std::sync::Arc;
 
 /// Receivers per work item of the lightmap sum: its f32 accumulators and one
@@ -275,7 +275,7 @@ impl Technique for Prm {
                 frame.lights,
                 &bake.entry_positions,
                 &bake.entry_normals,
-                &bake.entry_areas,
+                Footprints::Each(&bake.entry_areas),
                 entry_irradiance,
             );
         });

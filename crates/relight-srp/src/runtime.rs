@@ -14,6 +14,7 @@ use relight_technique::{
     FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
     StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
+use relight_trace::direct::Footprints;
 use relight_trace::Ray;
 use std::f32::consts::{FRAC_1_PI, PI};
 use std::sync::Arc;
@@ -397,7 +398,7 @@ impl Srp {
                 frame.lights,
                 &self.visible_positions,
                 &self.visible_normals,
-                &self.visible_areas,
+                Footprints::Each(&self.visible_areas),
                 &mut self.visible_direct,
             );
             return;
@@ -428,7 +429,7 @@ impl Srp {
             frame.lights,
             &self.gathered_positions,
             &self.gathered_normals,
-            &self.gathered_areas,
+            Footprints::Each(&self.gathered_areas),
             visible_static.map(|_| self.gathered_static.as_slice()),
             &mut self.gathered_direct,
         );

@@ -97,7 +97,7 @@ use relight_core::sampling::{
 use relight_core::Rgb;
 use relight_scene::atlas::{closest_barycentric, NEAR_LIGHT_DISTANCE_PER_TEXEL};
 use relight_scene::Light;
-use relight_trace::direct::{morton_order, StaticDirect};
+use relight_trace::direct::{morton_order, Footprints, StaticDirect};
 use relight_trace::Ray;
 use std::time::{Duration, Instant};
 
@@ -646,7 +646,7 @@ impl FinalGather {
             lights,
             &self.slot_positions,
             &self.slot_normals,
-            &self.slot_areas,
+            Footprints::Each(&self.slot_areas),
             &mut self.slot_direct,
         );
         self.hit_lighting_time += start.elapsed();
@@ -1548,7 +1548,7 @@ impl NearLightSamples {
             lights,
             &self.positions,
             &self.normals,
-            &self.areas,
+            Footprints::Each(&self.areas),
             &mut self.direct,
         );
         for ((radiosity, direct), albedo) in self

@@ -74,6 +74,27 @@ impl Default for DirectSettings {
     }
 }
 
+/// The patch (m^2) each point of a batch stands for, over which its
+/// punctual light is averaged (see
+/// [`DirectLight::irradiance_batch_over_footprints`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Footprints<'a> {
+    /// Point i's patch is `areas[i]`.
+    Each(&'a [f32]),
+    /// Every point's patch has this area (equal-area samples).
+    All(f32),
+}
+
+impl Footprints<'_> {
+    #[inline]
+    fn area(&self, index: usize) -> f32 {
+        match self {
+            Footprints::Each(areas) => areas[index],
+            Footprints::All(area) => *area,
+        }
+    }
+}
+
 /// The direct light at a fixed set of points that no frame changes
 /// (emissive triangles, the environment), traced the first time it is
 /// asked for. A technique that lights the same points every frame keeps
@@ -125,17 +146,12 @@ impl StaticDirect {
         lights: &[Light],
         points: &[Vec3],
         normals: &[Vec3],
-        footprint_areas: &[f32],
+        footprints: Footprints,
         irradiance: &mut [Rgb],
     ) {
         let fixed = self.at(direct, points, normals);
         direct.irradiance_batch_over_footprints(
-            lights,
-            points,
-            normals,
-            footprint_areas,
-            fixed,
-            irradiance,
+            lights, points, normals, footprints, fixed, irradiance,
         );
     }
 
@@ -382,7 +398,7 @@ impl<'a> DirectLight<'a> {
     }
 
     /// [`Self::irradiance_batch_over_static`] with each point's punctual
-    /// light averaged over a square of `footprint_areas[i]` (m^2) around it
+    /// light averaged over a square of its footprint (m^2) around it
     /// in its plane ([`mean_cosine_over_square`]), for points that each
     /// stand for a patch of surface: a point light a few centimetres from
     /// such a point gives it the patch's mean irradiance, bounded, not the
@@ -393,16 +409,18 @@ impl<'a> DirectLight<'a> {
         lights: &[Light],
         points: &[Vec3],
         normals: &[Vec3],
-        footprint_areas: &[f32],
+        footprints: Footprints,
         static_irradiance: Option<&[Rgb]>,
         irradiance: &mut [Rgb],
     ) {
-        assert_eq!(points.len(), footprint_areas.len());
+        if let Footprints::Each(areas) = footprints {
+            assert_eq!(points.len(), areas.len());
+        }
         self.batch_over_static(
             lights,
             points,
             normals,
-            |index| footprint_areas[index],
+            |index| footprints.area(index),
             static_irradiance,
             irradiance,
         );
@@ -782,7 +800,12 @@ mod tests {
         let mut patch = [Rgb::ZERO; 3];
         let mut point = [Rgb::ZERO; 3];
         service.irradiance_batch_over_footprints(
-            &lights, &points, &normals, &[0.04; 3], None, &mut patch,
+            &lights,
+            &points,
+            &normals,
+            Footprints::All(0.04),
+            None,
+            &mut patch,
         );
         service.irradiance_batch(&lights, &points, &normals, &mut point);
         let side = 0.2f32;
