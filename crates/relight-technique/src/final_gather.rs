@@ -96,7 +96,7 @@ use relight_core::sampling::{
 };
 use relight_core::Rgb;
 use relight_scene::atlas::{closest_barycentric, NEAR_LIGHT_DISTANCE_PER_TEXEL};
-use relight_scene::Light;
+use relight_scene::{Light, Mesh};
 use relight_trace::direct::{morton_order, Footprints, StaticDirect};
 use relight_trace::Ray;
 use std::time::{Duration, Instant};
@@ -1001,9 +1001,8 @@ struct HotDisc {
     reach: f32,
     radius: f32,
     normal: Vec3,
-    /// The triangle's corners, and in the disc's frame (`disc_frame`)
-    /// for the spiral.
-    corners: [Vec3; 3],
+    /// The triangle's corners in the disc's frame (`disc_frame`), for
+    /// the spiral.
     flat_corners: [Vec2; 3],
     /// Its area where `stratified`, else the disc's: what the points
     /// share.
@@ -1018,14 +1017,13 @@ impl HotDisc {
     /// triangle, or a Vogel spiral over the disc (even over it for any
     /// count, and the same points on every large triangle of one plane,
     /// each kept by the triangle it falls in). Each stands for
-    /// `area / count`.
-    fn points(&self, count: usize) -> impl Iterator<Item = Vec2> + '_ {
+    /// `area / count`. `mesh` holds the disc's triangle.
+    fn points<'a>(&'a self, mesh: &'a Mesh, count: usize) -> impl Iterator<Item = Vec2> + 'a {
         let reach_squared = self.reach * self.reach;
         (0..count).filter_map(move |index| {
             if self.stratified {
                 let barycentric = stratified_barycentric(index, count);
-                let [a, b, c] = self.corners;
-                let point = a + (b - a) * barycentric.x + (c - a) * barycentric.y;
+                let point = mesh.point_at(self.triangle, barycentric);
                 return (point.distance_squared(self.light) < reach_squared).then_some(barycentric);
             }
             let radius = self.radius * ((index as f32 + 0.5) / count as f32).sqrt();
@@ -1120,7 +1118,6 @@ fn near_light_discs(
                     reach,
                     radius,
                     normal,
-                    corners,
                     flat_corners,
                     area,
                     stratified,
@@ -1197,7 +1194,7 @@ impl HotSurfaces {
         let total: usize = wanted.iter().map(|&(_, _, count)| count).sum::<usize>()
             + discs
                 .iter()
-                .map(|disc| disc.points(disc.count).count())
+                .map(|disc| disc.points(mesh, disc.count).count())
                 .sum::<usize>();
         let thinning = (budget as f32 / total.max(1) as f32).min(1.0);
         let thinned = |count: usize| ((count as f32 * thinning).round() as usize).max(1);
@@ -1228,7 +1225,7 @@ impl HotSurfaces {
                 .iter()
                 .rev()
                 .take_while(|earlier| earlier.triangle == disc.triangle);
-            for barycentric in disc.points(count) {
+            for barycentric in disc.points(mesh, count) {
                 let position = mesh.point_at(disc.triangle, barycentric);
                 if earlier.clone().any(|earlier| {
                     position.distance_squared(earlier.light) < earlier.reach * earlier.reach
