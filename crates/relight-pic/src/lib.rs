@@ -13,6 +13,10 @@
 //! visible solid angle, refined top down, each with a scalar factor, cone
 //! and direction (runtime projection, 12 bytes) or SH coefficients.
 //!
+//! Load: each lightmap cache's links get one scale, so that a uniform
+//! radiosity gives the cache the share of its view that meets geometry
+//! ([`normalisation`]).
+//!
 //! Every frame: surfel lighting (the direct-light service at each surfel,
 //! a point light's averaged over a square of the surfel's area, the light
 //! of emissive surfaces through the links, and last frame's caches for
@@ -54,6 +58,7 @@
 //! | `space` | `gather` | points in space: `gather` the light leaving the surfaces around them over `space_rays` fixed rays, or read the `grid` caches (the paper; cheaper, but it leaks through walls) |
 //! | `space_rays` | 64 | gather rays per point in space |
 //! | `cache_visibility` | true | receivers and surfels drop the bilinear lightmap caches they cannot see (one ray each at load; see the limits below); false: the paper's plain bilinear lookup (run time) |
+//! | `link_normalisation` | true | each lightmap cache's links are scaled at load so that a uniform radiosity gives the cache the share of its view that meets geometry ([`normalisation`]; 256 rays a cache); false: the links as baked (the paper) (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the lightmap caches over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
 //! | `final_gather_min_rays` | 64 (`high`: 256) | the automatic ray count's floor, which large scenes get: Sponza's 180k gathering receivers get it (see below) (run time) |
@@ -160,9 +165,9 @@
 //! - The first update runs passes until the bounces settle, not a fixed
 //!   count: 16 passes left a bright closed room (grey, albedo 0.9) at
 //!   0.818x the path tracer's indirect light with PIC high, 18.1 % over
-//!   8x8 tiles; settled, 0.939x and 6.1 %. The 6 % still missing there is
-//!   PIC's own loss per bounce (0.97x at albedo 0.3, where one bounce is
-//!   most of the light).
+//!   8x8 tiles; settled, 0.939x and 6.1 % (before the links were
+//!   normalised, below). The 6 % still missing there was PIC's loss per
+//!   bounce (0.97x at albedo 0.3, where one bounce is most of the light).
 //! - A link spreads its node's flux by the node's mean factor, so where
 //!   the brightest surfels of a coarse node are also the nearest (a point
 //!   light by the floor), the first bounce comes out dark: Sponza with its
@@ -196,15 +201,21 @@
 //!   open on two sides: 1.14x of the path tracer's light, 1.04x with the
 //!   samples). Each lightmap cache traces the samples once at load; the
 //!   grid caches lose those surfaces' first bounce, which the links no
-//!   longer carry. Two limits remain. Rooms lit through a
-//!   doorway by a shaded lamp are still 0.79-0.84x on two suites, where
-//!   one bounce is 0.89x and tracing every texel (`final_gather=inf`)
-//!   gives 0.93x, so the rest is the caches' loss over bounces; a bright
-//!   suite lit by a spot light beside a wall (albedo 0.86) went from
-//!   0.96x to 0.81x, its first bounce from 1.22x to 0.92x, the same loss
-//!   no longer hidden by a first bounce too bright. And a lamp 14 cm
-//!   from a corner by a doorway gives the next room 0.95x of one bounce
-//!   with the samples, 1.02x with the links.
+//!   longer carry. A lamp 14 cm from a corner by a doorway gives the
+//!   next room 0.95x of one bounce with the samples, 1.02x with the
+//!   links.
+//! - Every bounce passes through the links, and the links as baked gather
+//!   less than their cache sees: under a uniform radiosity of one, the
+//!   caches of a closed room should gather one, and a generated two-room
+//!   suite's (variant 88 of `relight gen variants`, `high`) gathered
+//!   0.986 at the median, 0.916 at the 10th percentile and 0.90 within
+//!   5 cm of other geometry (discs for surfels, children the cut dropped).
+//!   The loss compounds over bounces: that suite's unlit room got 0.92x
+//!   the path tracer's first bounce, 1.02x of three, 0.81x of all, and
+//!   tracing every texel's near field (`final_gather=inf`) gave 0.86x.
+//!   Each lightmap cache's links are therefore scaled at load to what it
+//!   sees ([`normalisation`]), which also scales down links that claim
+//!   more than the cache sees. Grid caches are not scaled.
 
 // SH loops index several per-band arrays by band number on purpose.
 #![allow(clippy::needless_range_loop)]
@@ -215,6 +226,7 @@ pub mod hierarchy;
 mod kernels;
 pub mod links;
 pub mod near_light;
+pub mod normalisation;
 mod runtime;
 pub mod surfels;
 
@@ -276,6 +288,7 @@ pub struct PicParams {
     pub space: String,
     pub space_rays: u32,
     pub cache_visibility: bool,
+    pub link_normalisation: bool,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
     pub final_gather_min_rays: u32,
@@ -308,6 +321,7 @@ impl Default for PicParams {
             space: "gather".into(),
             space_rays: 64,
             cache_visibility: true,
+            link_normalisation: true,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
             final_gather_min_rays: 64,
@@ -449,6 +463,7 @@ impl PicParams {
             specular: self.specular,
             space_gather: (self.space == "gather").then(|| SurfaceGather::new(self.space_rays)),
             cache_visibility: self.cache_visibility,
+            link_normalisation: self.link_normalisation,
             // validate() has checked it.
             final_gather: self
                 .final_gather_settings()

@@ -3,6 +3,7 @@
 use crate::bake::PicBake;
 use crate::kernels::{self, LinkScratch, LinkSlice};
 use crate::near_light::NearLightCaches;
+use crate::normalisation;
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::{rgb_to_ycocg, ycocg_to_rgb};
@@ -38,6 +39,9 @@ pub struct RuntimeSettings {
     pub cache_visibility: bool,
     /// Which receivers near other geometry trace their near field.
     pub final_gather: FinalGatherSettings,
+    /// Scale each lightmap cache's links to what it sees (see
+    /// [`crate::normalisation`]).
+    pub link_normalisation: bool,
 }
 
 pub struct Pic {
@@ -106,6 +110,9 @@ pub struct Pic {
     /// The surfaces beside the scene file's lights, which the lightmap
     /// caches see through explicit samples (see [`crate::near_light`]).
     near_light: NearLightCaches,
+    /// Each lightmap cache's link scale (see [`crate::normalisation`]);
+    /// empty when the links run as baked.
+    cache_scales: Vec<f32>,
 }
 
 impl Pic {
@@ -205,6 +212,7 @@ impl Pic {
             updates: 0,
             lights: Vec::new(),
             near_light: NearLightCaches::default(),
+            cache_scales: Vec::new(),
             cache_of_texel,
             own_atlas,
             final_gather: FinalGather::build(
@@ -229,6 +237,15 @@ impl Pic {
             })
             .collect();
         technique.find_hidden_taps();
+        let (subtrees, top) = technique
+            .bake
+            .hierarchy
+            .pull_schedule(4 * rayon::current_num_threads());
+        technique.pull_subtrees = subtrees;
+        technique.pull_top = top;
+        if technique.settings.link_normalisation {
+            technique.cache_scales = technique.link_scales();
+        }
         let lightmap_caches = technique.bake.caches.lightmap_count;
         technique.near_light = NearLightCaches::build(
             &technique.context,
@@ -243,14 +260,48 @@ impl Pic {
             (technique.settings.bands, technique.settings.chroma_bands),
             &technique.cosine_factors,
         );
-        let (subtrees, top) = technique
-            .bake
-            .hierarchy
-            .pull_schedule(4 * rayon::current_num_threads());
-        technique.pull_subtrees = subtrees;
-        technique.pull_top = top;
         technique.settle_area_lights();
         Ok(technique)
+    }
+
+    /// Each lightmap cache's scale from its links' light under a uniform
+    /// radiosity of one and the share of its view that meets geometry.
+    /// Runs before the near-light samples, which are not links.
+    fn link_scales(&mut self) -> Vec<f32> {
+        let start = Instant::now();
+        let linked = self.light_under_uniform_radiosity();
+        let caches = &self.bake.caches;
+        let count = caches.lightmap_count;
+        let scales = normalisation::scales(
+            &self.context,
+            &caches.positions[..count],
+            &caches.normals[..count],
+            &linked,
+        );
+        normalisation::log_scales(&scales, start.elapsed());
+        scales
+    }
+
+    /// What each lightmap cache's links gather, facing its own normal, when
+    /// every surfel's radiosity is one: a cache-lighting pass, so the same
+    /// kernels and scales as a frame. Leaves the flux and caches dark.
+    fn light_under_uniform_radiosity(&mut self) -> Vec<f32> {
+        let leaves = self.bake.surfels.len();
+        self.flux.fill(Vec3::ZERO);
+        // YCoCg: luma one, no chroma.
+        self.flux[..leaves].fill(Vec3::X);
+        self.pull();
+        self.light_caches();
+        let caches = &self.bake.caches;
+        let linked = (0..caches.lightmap_count)
+            .map(|cache| {
+                self.irradiance_of(&[(cache as u32, 1.0)], caches.normals[cache])
+                    .x
+            })
+            .collect();
+        self.flux.fill(Vec3::ZERO);
+        self.cache_sh.fill(0.0);
+        linked
     }
 
     fn atlas(&self) -> &Atlas {
@@ -678,6 +729,7 @@ impl Pic {
         let narrow_kernel = projected_kernel::<u16>(bands);
         let narrow_nodes = &self.narrow_link_nodes;
         let near_light = &self.near_light;
+        let cache_scales = &self.cache_scales;
         self.cache_sh
             .par_chunks_mut(stride * 64)
             .enumerate()
@@ -745,8 +797,9 @@ impl Pic {
                                 );
                             }
                         }
+                        let scale = inverse_scale * cache_scales.get(cache).copied().unwrap_or(1.0);
                         for value in row.iter_mut() {
-                            *value *= inverse_scale;
+                            *value *= scale;
                         }
                         if !near_light.is_empty() {
                             let (luma, rest) = row.split_at_mut(luma_count);
@@ -1205,7 +1258,10 @@ impl Technique for Pic {
                 },
                 self.link_bytes(),
             ),
-            MemoryEntry::new("caches (SH, f32)", self.cache_sh.len() * 4),
+            MemoryEntry::new(
+                "caches (SH, f32; link scales)",
+                self.cache_sh.len() * 4 + self.cache_scales.len() * 4,
+            ),
             MemoryEntry::new("lightmap cache index", self.cache_of_texel.len() * 4),
             MemoryEntry::new(
                 "surfel lightmap taps and basis",
@@ -1332,6 +1388,50 @@ mod tests {
             )
         };
         rows
+    }
+
+    /// Under a uniform radiosity of one, every cache of a closed room
+    /// should gather one. The links as baked fall short by the share of
+    /// each cache's view their samples miss; normalised, each cache gets
+    /// its own view's share, which in a closed room is all of it.
+    /// Tolerance: the scales come from the same pass, so only the f32
+    /// sums and a cache whose scale was clamped can differ.
+    #[test]
+    fn normalised_links_gather_a_uniform_radiosity_whole() {
+        let context = relight_technique::robustness::closed_grey_room(0.5);
+        let payload = relight_technique::robustness::shared_bake(&crate::PicKind, &context, &[]);
+        let percentiles = |normalised: bool| {
+            let mut settings = crate::PicParams::default().runtime();
+            settings.link_normalisation = normalised;
+            let bake = PicBake::decode(&payload).expect("the bake decodes");
+            let mut pic = Pic::new(context.clone(), bake, settings).expect("PIC loads");
+            let lift = context.surface_lift();
+            let caches = &pic.bake.caches;
+            let visible: Vec<bool> = (0..caches.lightmap_count)
+                .map(|cache| {
+                    !context.is_hidden_surface_point(
+                        caches.positions[cache],
+                        caches.normals[cache],
+                        lift,
+                    )
+                })
+                .collect();
+            let mut light: Vec<f32> = pic
+                .light_under_uniform_radiosity()
+                .into_iter()
+                .zip(&visible)
+                .filter_map(|(light, &visible)| visible.then_some(light))
+                .collect();
+            light.sort_unstable_by(f32::total_cmp);
+            let at = |share: f64| light[((light.len() - 1) as f64 * share) as usize];
+            (at(0.1), at(0.5))
+        };
+        let (baked_tenth, baked_median) = percentiles(false);
+        let (tenth, median) = percentiles(true);
+        println!("10th percentile and median: baked {baked_tenth:.3}, {baked_median:.3}; normalised {tenth:.3}, {median:.3}");
+        assert!(baked_tenth < 0.97, "{baked_tenth}");
+        assert!((tenth - 1.0).abs() < 0.01, "{tenth}");
+        assert!((median - 1.0).abs() < 0.01, "{median}");
     }
 
     /// The F16C kernel against the scalar loop, for every row length it
