@@ -1,6 +1,6 @@
 //! The surfaces beside the scene file's lights (a shade's inside, the
 //! patch of wall a few texels from a lamp), which the lightmap caches see
-//! through explicit samples rather than through the caches.
+//! through explicit samples rather than through the links.
 //!
 //! A cache's links go to the nodes of largest visible solid angle, chosen
 //! at bake without the lights, and each link's factor averages the

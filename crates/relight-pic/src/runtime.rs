@@ -287,14 +287,11 @@ impl Pic {
 
     /// What each lightmap cache's links gather, facing its own normal, when
     /// every surfel's radiosity is one: a cache-lighting pass, so the same
-    /// kernels and scales as a frame. Leaves the flux and caches dark.
+    /// kernels and scales as a frame. Leaves the caches dark.
     fn light_under_uniform_radiosity(&mut self) -> Vec<f32> {
-        let leaves = self.bake.surfels.len();
-        self.flux.fill(Vec3::ZERO);
         // YCoCg: luma one, no chroma.
-        self.flux[..leaves].fill(Vec3::X);
-        self.pull();
-        self.light_caches();
+        let uniform = vec![Vec3::X; self.bake.surfels.len()];
+        self.light_caches_from_leaves(&uniform);
         let caches = &self.bake.caches;
         // Luma (YCoCg's first channel): the flux has no chroma.
         let linked = (0..caches.lightmap_count)
@@ -305,9 +302,18 @@ impl Pic {
                     .x
             })
             .collect();
-        self.flux.fill(Vec3::ZERO);
         self.cache_sh.fill(0.0);
         linked
+    }
+
+    /// A pass at load: every surfel's flux from `leaf_flux` (YCoCg, in
+    /// surfel-area units), pulled up the tree into the caches. The first
+    /// update sets every leaf again and pulls, so the flux left behind is
+    /// never read.
+    fn light_caches_from_leaves(&mut self, leaf_flux: &[Vec3]) {
+        self.flux[..leaf_flux.len()].copy_from_slice(leaf_flux);
+        self.pull();
+        self.light_caches();
     }
 
     fn atlas(&self) -> &Atlas {
@@ -523,11 +529,12 @@ impl Pic {
             return;
         }
         // Radiant exitance pi L_e per unit area: flux in surfel-area units.
-        for (leaf, emission) in surfels.emission.iter().enumerate() {
-            self.flux[leaf] = rgb_to_ycocg(*emission * PI);
-        }
-        self.pull();
-        self.light_caches();
+        let exitance: Vec<Vec3> = surfels
+            .emission
+            .iter()
+            .map(|&emission| rgb_to_ycocg(emission * PI))
+            .collect();
+        self.light_caches_from_leaves(&exitance);
         let mut area_light = std::mem::take(&mut self.surfel_area_light);
         self.feedback_irradiance(&mut area_light);
         self.surfel_area_light = area_light;
