@@ -135,9 +135,13 @@ pub fn run_study(
         .ok()
         .and_then(|count| count.parse().ok())
         .map(|count| {
-            let raw = relight_scene::atlas::Atlas::build(&context.scene, context.settings.lightmap)
-                .map(|atlas| atlas.receivers.positions)
-                .unwrap_or_default();
+            let raw = relight_technique::chart_atlas(
+                &context.scene,
+                &context.bvh,
+                context.settings.lightmap,
+            )
+            .map(|atlas| atlas.receivers.positions)
+            .unwrap_or_default();
             (count, raw)
         });
     let mut first: Option<Vec<Rgb>> = None;

@@ -6,7 +6,10 @@
 //! non-overlapping atlas it is used as is; otherwise charts are grown over
 //! edge-connected triangles whose normals stay within a cone of the chart's
 //! seed normal, projected onto the seed's plane (a height field, so no folds),
-//! and shelf-packed with a gutter of [`GUTTER_TEXELS`].
+//! and shelf-packed with a gutter of [`GUTTER_TEXELS`]. A chart does not
+//! grow across an edge that a surface stands on ([`Atlas::build_between_walls`]):
+//! two rooms' floors that meet under a partition get charts of their own, so
+//! no texel straddles the partition and shows one room's light in the other.
 //!
 //! Receivers are the texels that cover geometry. Rasterisation is
 //! conservative: a texel is covered when its square overlaps a triangle, so
@@ -43,6 +46,16 @@ pub const GUTTER_TEXELS: u32 = 2;
 /// Charts accept triangles whose normal is within this angle of the seed's,
 /// keeping the planar projection injective and texel stretch below 1/cos.
 const CHART_NORMAL_COS: f32 = 0.707; // 45 degrees
+
+/// Edges shorter than this many texels never stop a chart: a texel
+/// straddles a wall along its length only where the wall runs on for
+/// texels, and a short wall (a column's base, a moulding's end) is an
+/// object's foot, which the technique crate's hidden-texel fill serves.
+const WALL_EDGE_TEXELS: f32 = 2.0;
+
+/// Says whether a surface stands on the edge from `a` to `b` of a plane
+/// with normal `normal` (see [`Atlas::build_between_walls`]).
+pub type StandsOnEdge<'a> = &'a (dyn Fn(Vec3, Vec3, Vec3) -> bool + Sync);
 
 /// How the atlas resolution is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -170,7 +183,37 @@ impl Atlas {
 
     /// Builds the atlas of `scene` at the requested density.
     pub fn build(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
-        Self::build_refining(scene, density, scene.lightmap_layout.refine_near_lights)
+        Self::build_refining(
+            scene,
+            density,
+            scene.lightmap_layout.refine_near_lights,
+            None,
+        )
+    }
+
+    /// [`Self::build`] with charts that stop at the edges `walls` finds a
+    /// surface standing on (it is given the edge's ends and the normal of
+    /// the plane on both its sides, and answers with ray casts, which
+    /// this crate has none of).
+    ///
+    /// Where two rooms' floors (or walls, or ceilings) are separate
+    /// triangles of one plane that meet under a partition, a chart grown
+    /// over both put texels across the partition: each such texel's one
+    /// receiver stood on one side, and the other room's lookups beside
+    /// the partition's foot read that side's light (a generated suite of
+    /// two boxes sharing a wall: a bead of lamp-lit floor every few
+    /// texels along the unlit room's wall).
+    pub fn build_between_walls(
+        scene: &Scene,
+        density: TexelDensity,
+        walls: StandsOnEdge,
+    ) -> Result<Self, SceneError> {
+        Self::build_refining(
+            scene,
+            density,
+            scene.lightmap_layout.refine_near_lights,
+            Some(walls),
+        )
     }
 
     /// [`Self::build`] without finer texels near lights, for an atlas that
@@ -179,13 +222,14 @@ impl Atlas {
     /// count as small charts, and its receiver count would stop following
     /// its texel size.
     pub fn build_unrefined(scene: &Scene, density: TexelDensity) -> Result<Self, SceneError> {
-        Self::build_refining(scene, density, false)
+        Self::build_refining(scene, density, false, None)
     }
 
     fn build_refining(
         scene: &Scene,
         density: TexelDensity,
         near_lights: bool,
+        walls: Option<StandsOnEdge>,
     ) -> Result<Self, SceneError> {
         if density_is_invalid(density) {
             return Err(SceneError::Invalid {
@@ -206,7 +250,7 @@ impl Atlas {
                 .collect(),
             None => vec![0; scene.mesh.triangles.len()],
         };
-        let mut charts = grow_charts(scene, &rings);
+        let mut charts = grow_charts(scene, &rings, None);
         let sizing = match density {
             TexelDensity::MetresPerTexel(metres) => Sizing::Given(metres),
             TexelDensity::TargetResolution(side) => Sizing::Fitted { side, kept: true },
@@ -223,16 +267,31 @@ impl Atlas {
             Sizing::Fitted { side, .. } => fit_resolution(scene, charts, side),
         };
         let (mut metres_per_texel, mut packed) = fit(&charts)?;
+        // Split at walls once the texel size is known, and keep it: the
+        // automatic size follows the chart count, and real models' small
+        // parts (column bases, mouldings) stand on many short edges.
+        let mut split_at_walls = false;
+        if let Some(walls) = walls {
+            let walled = grow_charts(
+                scene,
+                &rings,
+                Some((walls, WALL_EDGE_TEXELS * metres_per_texel)),
+            );
+            split_at_walls = walled.len() > charts.len();
+            if split_at_walls {
+                charts = walled;
+            }
+        }
         let near_light_charts = if near_lights {
             refine_near_lights(scene, &mut charts, metres_per_texel)
         } else {
             0
         };
-        if near_light_charts > 0 {
+        if near_light_charts > 0 || split_at_walls {
             // Every other chart keeps the texel size it had, and so its
             // texels: an automatic atlas grows a few rows for the refined
-            // charts rather than coarsening the rest; a requested
-            // resolution is kept.
+            // or split charts rather than coarsening the rest; a
+            // requested resolution is kept.
             packed = match sizing {
                 Sizing::Given(metres) => pack_charts(scene, &charts, metres, None),
                 Sizing::Fitted { side, kept } => {
@@ -760,7 +819,7 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
 
 /// Grows charts by flood fill over shared edges, in triangle order, so the
 /// result is deterministic; a chart keeps to its seed's ring of detail.
-fn grow_charts(scene: &Scene, rings: &[u32]) -> Vec<Chart> {
+fn grow_charts(scene: &Scene, rings: &[u32], walls: Option<(StandsOnEdge, f32)>) -> Vec<Chart> {
     let mesh = &scene.mesh;
     let triangle_count = mesh.triangles.len();
     // Welds vertices by position so meshes with split vertices still connect.
@@ -788,6 +847,43 @@ fn grow_charts(scene: &Scene, rings: &[u32]) -> Vec<Chart> {
     let normals: Vec<Vec3> = (0..triangle_count)
         .map(|t| mesh.geometric_normal(t))
         .collect();
+    // Edges between two triangles a chart could join that a surface
+    // stands on; tested once each, in parallel, before the charts grow.
+    let walled: std::collections::HashSet<(u32, u32)> = match walls {
+        None => Default::default(),
+        Some((walls, least_length)) => {
+            let mut first_position = vec![Vec3::ZERO; welded.len()];
+            for (index, &id) in vertex_id.iter().enumerate().rev() {
+                first_position[id as usize] = mesh.positions[index];
+            }
+            let mut joinable: Vec<((u32, u32), (Vec3, u32))> = edge_triangles
+                .iter()
+                .filter_map(|(&edge, triangles)| {
+                    let joined = triangles.iter().enumerate().find_map(|(i, &t)| {
+                        triangles[i + 1..].iter().find_map(|&u| {
+                            let (t, u) = (t as usize, u as usize);
+                            (mesh.area(t) > 0.0
+                                && mesh.area(u) > 0.0
+                                && rings[t] == rings[u]
+                                && normals[t].dot(normals[u]) >= CHART_NORMAL_COS)
+                                .then(|| ((normals[t] + normals[u]).normalize_or_zero(), rings[t]))
+                        })
+                    })?;
+                    Some((edge, joined))
+                })
+                .collect();
+            joinable.sort_unstable_by_key(|&(edge, _)| edge);
+            joinable
+                .par_iter()
+                .filter(|&&((a, b), (normal, ring))| {
+                    let (a, b) = (first_position[a as usize], first_position[b as usize]);
+                    a.distance(b) >= least_length * DetailRegion::texel_scale(ring)
+                        && walls(a, b, normal)
+                })
+                .map(|&(edge, _)| edge)
+                .collect()
+        }
+    };
     let mut chart_of = vec![u32::MAX; triangle_count];
     let mut charts = Vec::new();
     let mut stack = Vec::new();
@@ -805,7 +901,11 @@ fn grow_charts(scene: &Scene, rings: &[u32]) -> Vec<Chart> {
             for corner in 0..3 {
                 let a = vertex_id[corners[corner] as usize];
                 let b = vertex_id[corners[(corner + 1) % 3] as usize];
-                for &neighbour in &edge_triangles[&(a.min(b), a.max(b))] {
+                let edge = (a.min(b), a.max(b));
+                if walled.contains(&edge) {
+                    continue;
+                }
+                for &neighbour in &edge_triangles[&edge] {
                     let n = neighbour as usize;
                     if chart_of[n] == u32::MAX
                         && mesh.area(n) > 0.0

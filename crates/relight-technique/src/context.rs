@@ -129,10 +129,53 @@ impl SceneContext {
 /// seen ([`relocate_receivers`]) and whose hidden texels show the seen
 /// texel beside them ([`fill_hidden_texels`]).
 pub fn build_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<Atlas, SceneError> {
-    let mut atlas = Atlas::build(scene, density)?;
+    let mut atlas = chart_atlas(scene, bvh, density)?;
     relocate_receivers(scene, bvh, &mut atlas);
     fill_hidden_texels(scene, bvh, &mut atlas);
     Ok(atlas)
+}
+
+/// The atlas [`build_atlas`] starts from: charts that stop where a surface
+/// stands on their edge, receivers where the rasteriser put them.
+pub fn chart_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<Atlas, SceneError> {
+    let walls = |a: Vec3, b: Vec3, normal: Vec3| stands_on_edge(scene, bvh, a, b, normal);
+    Atlas::build_between_walls(scene, density, &walls)
+}
+
+/// Points along an edge where [`stands_on_edge`] looks for a surface.
+const EDGE_PROBES: usize = 5;
+
+/// Whether a surface stands on the edge from `a` to `b` of a plane with
+/// `normal`: a short ray just above the plane, across the edge at any of
+/// a few points along it, meets a surface that turns from the plane by
+/// more than 60 degrees (a wall, an object's side; not the plane's own
+/// bumps or a curved chart's next facet).
+fn stands_on_edge(scene: &Scene, bvh: &Bvh, a: Vec3, b: Vec3, normal: Vec3) -> bool {
+    let along = b - a;
+    let across = normal.cross(along).normalize_or_zero();
+    if across == Vec3::ZERO {
+        return false;
+    }
+    let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
+    let lift = 4.0 * epsilon;
+    let reach = 16.0 * epsilon;
+    let walled = (0..EDGE_PROBES).filter(|&probe| {
+        let point = a + along * ((probe as f32 + 0.5) / EDGE_PROBES as f32) + normal * lift;
+        bvh.intersect(&Ray {
+            origin: point - across * reach,
+            direction: across,
+            t_max: 2.0 * reach,
+        })
+        .is_some_and(|hit| {
+            scene
+                .mesh
+                .geometric_normal(hit.triangle as usize)
+                .dot(normal)
+                .abs()
+                < 0.5
+        })
+    });
+    walled.count() > EDGE_PROBES / 2
 }
 
 /// Makes the texel of every receiver nobody sees, beside a seen texel of
@@ -284,7 +327,10 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// receiver inside a slab (a wall's back on both sides of it) moves only
 /// within its own texel, so a texel that a partition covers is never
 /// given either room's light; [`fill_hidden_texels`] decides what it
-/// shows.
+/// shows. A receiver never crosses a wall that stands on the edge where its
+/// own triangle ends: of two coincident walls (two rooms' boxes sharing
+/// one) one turns its back to every receiver beside it, and those
+/// receivers moved into the other room.
 pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
     use rayon::prelude::*;
     let texel = atlas.metres_per_texel;
@@ -343,15 +389,33 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         // nothing about which side the receiver is on.
                         continue;
                     }
+                    // Whether the receiver's triangle stops before `step`
+                    // from it. Where two coincident walls (two rooms'
+                    // boxes sharing a wall) stand on its edge, one turns
+                    // its back to the receiver and the other faces it, and
+                    // only its triangle, ending at the wall, tells its
+                    // side: it never crosses such a wall.
+                    let leaves = |step: Vec3| {
+                        planar_barycentric(corners, *position + step)
+                            .is_some_and(|(b, c)| b < 0.0 || c < 0.0 || b + c > 1.0)
+                    };
                     let slot = if cosine > 0.0 {
                         if hit.t < margin {
                             // Behind the start point: a wall this side of
                             // the receiver faces away from it.
                             continue;
                         }
-                        backs |= 1 << step;
-                        &mut behind
-                    } else if distance < margin {
+                        let edge_at_wall = !leaves(direction * (distance - 0.5 * margin).max(0.0))
+                            && leaves(direction * (distance + margin));
+                        if !edge_at_wall {
+                            backs |= 1 << step;
+                            &mut behind
+                        } else if distance < margin {
+                            &mut touching
+                        } else {
+                            continue;
+                        }
+                    } else if distance < margin && !leaves(-direction * margin) {
                         &mut touching
                     } else {
                         continue;
@@ -442,6 +506,15 @@ fn hidden_surface_point(scene: &Scene, bvh: &Bvh, position: Vec3, normal: Vec3, 
 /// `corners` and `uvs`, by the triangle's affine map (extended past its
 /// edges, as a chart's planar projection is).
 fn planar_uv(corners: [Vec3; 3], uvs: &[glam::Vec2; 3], point: Vec3) -> glam::Vec2 {
+    let Some((b, c)) = planar_barycentric(corners, point) else {
+        return uvs[0];
+    };
+    uvs[0] + (uvs[1] - uvs[0]) * b + (uvs[2] - uvs[0]) * c
+}
+
+/// The barycentric coordinates (of the second and third corner) of `point`
+/// projected onto the triangle's plane; `None` for a degenerate triangle.
+fn planar_barycentric(corners: [Vec3; 3], point: Vec3) -> Option<(f32, f32)> {
     let (edge_b, edge_c, offset) = (
         corners[1] - corners[0],
         corners[2] - corners[0],
@@ -451,11 +524,11 @@ fn planar_uv(corners: [Vec3; 3], uvs: &[glam::Vec2; 3], point: Vec3) -> glam::Ve
     let (ob, oc) = (offset.dot(edge_b), offset.dot(edge_c));
     let determinant = bb * cc - bc * bc;
     if determinant.abs() <= f32::MIN_POSITIVE {
-        return uvs[0];
+        return None;
     }
     let b = (cc * ob - bc * oc) / determinant;
     let c = (bb * oc - bc * ob) / determinant;
-    uvs[0] + (uvs[1] - uvs[0]) * b + (uvs[2] - uvs[0]) * c
+    Some((b, c))
 }
 
 /// Directions that test whether a point is enclosed: the axes and the cube
@@ -483,6 +556,90 @@ fn enclosure_directions() -> [Vec3; 14] {
 mod tests {
     use super::*;
 
+    /// Generated variant 97 is two rooms modelled as two boxes: each floor
+    /// is its own quad, and the quads meet under the two boxes' coincident
+    /// walls, with a doorway. One chart held both floors, so texels
+    /// straddled the partition, and relocation moved receivers on the
+    /// unlit room's side across it (one wall turns its back to them), so
+    /// every few texels along the unlit room's wall the floor showed the
+    /// lamp-lit room's light. Now each floor's texels lie in charts apart
+    /// from the other's, and each floor receiver stands on its own
+    /// floor's side of the partition (within 1 mm, rounding).
+    #[test]
+    fn rooms_modelled_as_two_boxes_keep_their_floors_apart() {
+        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+        let folder = tempfile::tempdir().expect("temporary folder");
+        let path = variant(VARIANTS_DEFAULT_SEED, 97)
+            .write(folder.path())
+            .expect("variant written");
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
+        let mesh = &context.scene.mesh;
+        let floors: Vec<usize> = (0..mesh.triangles.len())
+            .filter(|&t| {
+                mesh.geometric_normal(t).y > 0.99
+                    && mesh.vertices(t).iter().all(|v| v.y.abs() < 1e-4)
+            })
+            .collect();
+        let max_x = |t: usize| {
+            mesh.vertices(t)
+                .iter()
+                .map(|v| v.x)
+                .fold(f32::MIN, f32::max)
+        };
+        let partition = floors.iter().map(|&t| max_x(t)).fold(f32::MAX, f32::min);
+        let (first, second): (Vec<usize>, Vec<usize>) =
+            floors.iter().partition(|&&t| max_x(t) <= partition + 1e-4);
+        assert!(
+            !first.is_empty() && !second.is_empty(),
+            "two floors: {floors:?}"
+        );
+        let walls_there = (0..mesh.triangles.len())
+            .filter(|&t| {
+                mesh.vertices(t)
+                    .iter()
+                    .all(|v| (v.x - partition).abs() < 1e-4)
+            })
+            .count();
+        assert!(
+            walls_there >= 4,
+            "coincident partition walls at x = {partition}"
+        );
+        let uv_bounds = |triangles: &[usize]| {
+            let mut low = glam::Vec2::splat(f32::MAX);
+            let mut high = glam::Vec2::splat(f32::MIN);
+            for &t in triangles {
+                for uv in context.atlas.triangle_uvs[t] {
+                    low = low.min(uv);
+                    high = high.max(uv);
+                }
+            }
+            (low, high)
+        };
+        let ((low_a, high_a), (low_b, high_b)) = (uv_bounds(&first), uv_bounds(&second));
+        let apart =
+            high_a.x < low_b.x || high_b.x < low_a.x || high_a.y < low_b.y || high_b.y < low_a.y;
+        assert!(
+            apart,
+            "floors share texels: {low_a}..{high_a} and {low_b}..{high_b}"
+        );
+        let receivers = &context.atlas.receivers;
+        let strays: Vec<usize> = (0..receivers.len())
+            .filter(|&index| {
+                let triangle = receivers.triangles[index] as usize;
+                let x = receivers.positions[index].x;
+                (first.contains(&triangle) && x > partition + 1e-3)
+                    || (second.contains(&triangle) && x < partition - 1e-3)
+            })
+            .collect();
+        assert!(
+            strays.is_empty(),
+            "{} floor receivers off their triangle, e.g. {:?}",
+            strays.len(),
+            strays.first().map(|&index| receivers.positions[index])
+        );
+    }
+
     /// On the shipped Cornell box some texel centres lie behind a wall (the
     /// ceiling runs under the slightly tilted right wall) or under a box.
     /// After relocation only texels a surface covers completely may still
@@ -495,7 +652,8 @@ mod tests {
             .join("../../scenes/cornell-box/scene.toml");
         let scene = relight_scene::load_scene(&path).expect("shipped scene loads");
         let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
-        let raw = Atlas::build(&context.scene, context.settings.lightmap).expect("atlas");
+        let raw =
+            chart_atlas(&context.scene, &context.bvh, context.settings.lightmap).expect("atlas");
         let texel = context.atlas.metres_per_texel;
         let lift = texel * 0.01;
         let enclosed = |atlas: &Atlas| {

@@ -91,7 +91,7 @@ pub use builtin::{
     ReferenceLightmap, ReferenceParams,
 };
 pub use context::{
-    build_atlas, fill_hidden_texels, relocate_receivers, ContextSettings, SceneContext,
+    build_atlas, chart_atlas, fill_hidden_texels, relocate_receivers, ContextSettings, SceneContext,
 };
 pub use estimate::{available_bytes, format_bytes, parse_size, resident_bytes, BakeEstimate};
 pub use final_gather::{
