@@ -36,7 +36,7 @@ use crate::{Scene, SceneError};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::{Rgb, Rgb9e5};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Empty texels kept around every chart: one for the conservative
@@ -250,7 +250,8 @@ impl Atlas {
                 .collect(),
             None => vec![0; scene.mesh.triangles.len()],
         };
-        let mut charts = grow_charts(scene, &rings, None);
+        let graph = EdgeGraph::of(scene);
+        let mut charts = grow_charts(scene, &rings, &graph, &HashSet::new());
         let sizing = match density {
             TexelDensity::MetresPerTexel(metres) => Sizing::Given(metres),
             TexelDensity::TargetResolution(side) => Sizing::Fitted { side, kept: true },
@@ -272,14 +273,14 @@ impl Atlas {
         // parts (column bases, mouldings) stand on many short edges.
         let mut split_at_walls = false;
         if let Some(walls) = walls {
-            let walled = grow_charts(
-                scene,
-                &rings,
-                Some((walls, WALL_EDGE_TEXELS * metres_per_texel)),
-            );
-            split_at_walls = walled.len() > charts.len();
-            if split_at_walls {
-                charts = walled;
+            let walled =
+                graph.walled_edges(scene, &rings, walls, WALL_EDGE_TEXELS * metres_per_texel);
+            if !walled.is_empty() {
+                let split = grow_charts(scene, &rings, &graph, &walled);
+                split_at_walls = split.len() > charts.len();
+                if split_at_walls {
+                    charts = split;
+                }
             }
         }
         let near_light_charts = if near_lights {
@@ -817,73 +818,119 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
     refined
 }
 
-/// Grows charts by flood fill over shared edges, in triangle order, so the
-/// result is deterministic; a chart keeps to its seed's ring of detail.
-fn grow_charts(scene: &Scene, rings: &[u32], walls: Option<(StandsOnEdge, f32)>) -> Vec<Chart> {
-    let mesh = &scene.mesh;
-    let triangle_count = mesh.triangles.len();
-    // Welds vertices by position so meshes with split vertices still connect.
-    let mut welded: HashMap<[u32; 3], u32> = HashMap::new();
-    let vertex_id: Vec<u32> = mesh
-        .positions
-        .iter()
-        .map(|p| {
-            let key = [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
-            let next = welded.len() as u32;
-            *welded.entry(key).or_insert(next)
-        })
-        .collect();
-    let mut edge_triangles: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
-    for (triangle, corners) in mesh.triangles.iter().enumerate() {
-        for corner in 0..3 {
-            let a = vertex_id[corners[corner] as usize];
-            let b = vertex_id[corners[(corner + 1) % 3] as usize];
-            edge_triangles
-                .entry((a.min(b), a.max(b)))
-                .or_default()
-                .push(triangle as u32);
+/// The mesh's triangles joined by their edges, vertices welded by position
+/// so meshes with split vertices still connect: built once, grown into
+/// charts with and without walls.
+struct EdgeGraph {
+    vertex_id: Vec<u32>,
+    /// Per welded vertex, its position.
+    welded_positions: Vec<Vec3>,
+    edge_triangles: HashMap<(u32, u32), Vec<u32>>,
+    normals: Vec<Vec3>,
+}
+
+impl EdgeGraph {
+    fn of(scene: &Scene) -> Self {
+        let mesh = &scene.mesh;
+        let mut welded: HashMap<[u32; 3], u32> = HashMap::new();
+        let mut welded_positions = Vec::new();
+        let vertex_id: Vec<u32> = mesh
+            .positions
+            .iter()
+            .map(|p| {
+                let key = [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+                let next = welded.len() as u32;
+                *welded.entry(key).or_insert_with(|| {
+                    welded_positions.push(*p);
+                    next
+                })
+            })
+            .collect();
+        let mut edge_triangles: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+        for (triangle, corners) in mesh.triangles.iter().enumerate() {
+            for corner in 0..3 {
+                let a = vertex_id[corners[corner] as usize];
+                let b = vertex_id[corners[(corner + 1) % 3] as usize];
+                edge_triangles
+                    .entry((a.min(b), a.max(b)))
+                    .or_default()
+                    .push(triangle as u32);
+            }
+        }
+        let normals = (0..mesh.triangles.len())
+            .map(|t| mesh.geometric_normal(t))
+            .collect();
+        Self {
+            vertex_id,
+            welded_positions,
+            edge_triangles,
+            normals,
         }
     }
-    let normals: Vec<Vec3> = (0..triangle_count)
-        .map(|t| mesh.geometric_normal(t))
-        .collect();
-    // Edges between two triangles a chart could join that a surface
-    // stands on; tested once each, in parallel, before the charts grow.
-    let walled: std::collections::HashSet<(u32, u32)> = match walls {
-        None => Default::default(),
-        Some((walls, least_length)) => {
-            let mut first_position = vec![Vec3::ZERO; welded.len()];
-            for (index, &id) in vertex_id.iter().enumerate().rev() {
-                first_position[id as usize] = mesh.positions[index];
-            }
-            let mut joinable: Vec<((u32, u32), (Vec3, u32))> = edge_triangles
-                .iter()
-                .filter_map(|(&edge, triangles)| {
-                    let joined = triangles.iter().enumerate().find_map(|(i, &t)| {
-                        triangles[i + 1..].iter().find_map(|&u| {
-                            let (t, u) = (t as usize, u as usize);
-                            (mesh.area(t) > 0.0
-                                && mesh.area(u) > 0.0
-                                && rings[t] == rings[u]
-                                && normals[t].dot(normals[u]) >= CHART_NORMAL_COS)
-                                .then(|| ((normals[t] + normals[u]).normalize_or_zero(), rings[t]))
-                        })
-                    })?;
-                    Some((edge, joined))
-                })
-                .collect();
-            joinable.sort_unstable_by_key(|&(edge, _)| edge);
-            joinable
-                .par_iter()
-                .filter(|&&((a, b), (normal, ring))| {
-                    let (a, b) = (first_position[a as usize], first_position[b as usize]);
-                    a.distance(b) >= least_length * DetailRegion::texel_scale(ring)
-                        && walls(a, b, normal)
-                })
-                .map(|&(edge, _)| edge)
-                .collect()
-        }
-    };
+
+    /// The edges of two triangles a chart could join (area, ring, normals
+    /// within the chart cone) that are at least `least_length` long at
+    /// their ring's texel scale and that `walls` finds a surface standing
+    /// on; tested once each, in parallel, before the charts grow.
+    fn walled_edges(
+        &self,
+        scene: &Scene,
+        rings: &[u32],
+        walls: StandsOnEdge,
+        least_length: f32,
+    ) -> HashSet<(u32, u32)> {
+        let mesh = &scene.mesh;
+        let normals = &self.normals;
+        let mut joinable: Vec<((u32, u32), (Vec3, u32))> = self
+            .edge_triangles
+            .iter()
+            .filter_map(|(&edge, triangles)| {
+                let joined = triangles.iter().enumerate().find_map(|(i, &t)| {
+                    triangles[i + 1..].iter().find_map(|&u| {
+                        let (t, u) = (t as usize, u as usize);
+                        (mesh.area(t) > 0.0
+                            && mesh.area(u) > 0.0
+                            && rings[t] == rings[u]
+                            && normals[t].dot(normals[u]) >= CHART_NORMAL_COS)
+                            .then(|| ((normals[t] + normals[u]).normalize_or_zero(), rings[t]))
+                    })
+                })?;
+                Some((edge, joined))
+            })
+            .collect();
+        joinable.sort_unstable_by_key(|&(edge, _)| edge);
+        joinable
+            .par_iter()
+            .filter(|&&((a, b), (normal, ring))| {
+                let (a, b) = (
+                    self.welded_positions[a as usize],
+                    self.welded_positions[b as usize],
+                );
+                a.distance(b) >= least_length * DetailRegion::texel_scale(ring)
+                    && walls(a, b, normal)
+            })
+            .map(|&(edge, _)| edge)
+            .collect()
+    }
+}
+
+/// Grows charts by flood fill over shared edges other than the `walled`
+/// ones, in triangle order, so the result is deterministic; a chart keeps
+/// to its seed's ring of detail.
+fn grow_charts(
+    scene: &Scene,
+    rings: &[u32],
+    graph: &EdgeGraph,
+    walled: &HashSet<(u32, u32)>,
+) -> Vec<Chart> {
+    let mesh = &scene.mesh;
+    let triangle_count = mesh.triangles.len();
+    let EdgeGraph {
+        vertex_id,
+        edge_triangles,
+        normals,
+        ..
+    } = graph;
     let mut chart_of = vec![u32::MAX; triangle_count];
     let mut charts = Vec::new();
     let mut stack = Vec::new();

@@ -138,7 +138,8 @@ pub fn build_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<At
 /// The atlas [`build_atlas`] starts from: charts that stop where a surface
 /// stands on their edge, receivers where the rasteriser put them.
 pub fn chart_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<Atlas, SceneError> {
-    let walls = |a: Vec3, b: Vec3, normal: Vec3| stands_on_edge(scene, bvh, a, b, normal);
+    let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
+    let walls = |a: Vec3, b: Vec3, normal: Vec3| stands_on_edge(scene, bvh, epsilon, a, b, normal);
     Atlas::build_between_walls(scene, density, &walls)
 }
 
@@ -146,17 +147,17 @@ pub fn chart_atlas(scene: &Scene, bvh: &Bvh, density: TexelDensity) -> Result<At
 const EDGE_PROBES: usize = 5;
 
 /// Whether a surface stands on the edge from `a` to `b` of a plane with
-/// `normal`: a short ray just above the plane, across the edge at any of
-/// a few points along it, meets a surface that turns from the plane by
-/// more than 60 degrees (a wall, an object's side; not the plane's own
-/// bumps or a curved chart's next facet).
-fn stands_on_edge(scene: &Scene, bvh: &Bvh, a: Vec3, b: Vec3, normal: Vec3) -> bool {
+/// `normal`: at more than half of the [`EDGE_PROBES`] points along the
+/// edge, a short ray just above the plane and across the edge (`epsilon`,
+/// the BVH's ray epsilon, sets its height and length) meets a surface
+/// that turns from the plane by more than 60 degrees (a wall; not the
+/// plane's own bumps or a curved chart's next facet).
+fn stands_on_edge(scene: &Scene, bvh: &Bvh, epsilon: f32, a: Vec3, b: Vec3, normal: Vec3) -> bool {
     let along = b - a;
     let across = normal.cross(along).normalize_or_zero();
     if across == Vec3::ZERO {
         return false;
     }
-    let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
     let lift = 4.0 * epsilon;
     let reach = 16.0 * epsilon;
     let walled = (0..EDGE_PROBES).filter(|&probe| {
