@@ -1228,3 +1228,22 @@ fn a_shaded_lamps_light_reaches_the_next_room_wherever_the_points_fall() {
         }
     }
 }
+
+/// A point light 11 cm from a room's corner (variant 15 of the default
+/// family: a 7 m room, walls as solids, 20 cm texels at the automatic
+/// lightmap) makes a hot spot a few of its distances wide on each wall,
+/// and each wall's indirect light there comes from the other's hot spot:
+/// it varies over a decimetre. At the room's texels every technique read
+/// 19-25 % over 8x8 tiles (LightSkin 21.4 % against one bounce; PRM 24.8 %,
+/// and 8.3 % with the whole lightmap at 10 cm texels). The atlas now gives
+/// the walls beside such a lamp finer texels: LightSkin 2.7 %. Bound: the
+/// issue's 15 % for rooms (the reference's own tile noise is 2.4 %).
+#[test]
+fn walls_beside_a_lamp_in_a_corner_are_resolved() {
+    let case =
+        relight_render::robustness::VariantCase::default_family(15).expect("the variant loads");
+    assert!(case.context.atlas.near_light_charts > 0);
+    let technique = updated(&case.context, LightSkinParams::default());
+    let (measured, _) = case.measure_as_the_study_does(&technique);
+    assert!(measured.image_tiles < 0.15, "{}", measured.image_tiles);
+}

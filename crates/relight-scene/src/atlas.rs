@@ -26,10 +26,10 @@
 //!
 //! Texel density is uniform inside the scene's detail region and coarsens
 //! ring by ring outside it ([`crate::detail`]): charts grow within one ring
-//! and each is projected at its ring's texel size. Small charts near the
-//! scene file's point and spot lights (a lampshade, a sconce) are projected
-//! finer, so the light they bounce is resolved (`refine_near_lights`); the
-//! other charts keep their texels.
+//! and each is projected at its ring's texel size. Charts near the scene
+//! file's point and spot lights (a lampshade, a sconce, the walls by a lamp
+//! in a corner) are projected finer, so the light they bounce is resolved
+//! (`refine_near_lights`); the other charts keep their texels.
 
 use crate::detail::DetailRegion;
 use crate::{Scene, SceneError};
@@ -154,6 +154,11 @@ pub struct Atlas {
     /// Charts given finer texels for standing near a point or spot light
     /// of the scene file (`lightmap.refine_near_lights`).
     pub near_light_charts: usize,
+    /// Per triangle, whether it is in a small chart refined near a light
+    /// (a shade's inside, a sconce's recess), which stands near the light
+    /// as a whole; the large charts refined near a light (a wall beside a
+    /// lamp in a corner) have one part near it. Empty when no chart is.
+    pub triangle_in_small_near_light_chart: Vec<bool>,
     /// Metres per texel edge inside the detail region: as generated, or for
     /// the mesh's own UVs the mean over the surface (0 only for a mesh
     /// without area).
@@ -179,6 +184,15 @@ impl Atlas {
     /// footprint on the surface.
     pub fn texel_area(&self, triangle: u32) -> f32 {
         self.metres_per_texel * self.metres_per_texel * self.texel_area_weight(triangle)
+    }
+
+    /// Whether `triangle` is in a small chart refined near a light
+    /// ([`Self::triangle_in_small_near_light_chart`]).
+    pub fn in_small_near_light_chart(&self, triangle: u32) -> bool {
+        self.triangle_in_small_near_light_chart
+            .get(triangle as usize)
+            .copied()
+            .unwrap_or(false)
     }
 
     /// Builds the atlas of `scene` at the requested density.
@@ -283,8 +297,11 @@ impl Atlas {
                 }
             }
         }
+        // A requested resolution is kept by coarsening every other chart,
+        // so only a small chart's few texels are worth it there.
+        let large_too = !matches!(sizing, Sizing::Fitted { kept: true, .. });
         let near_light_charts = if near_lights {
-            refine_near_lights(scene, &mut charts, metres_per_texel)
+            refine_near_lights(scene, &mut charts, metres_per_texel, large_too)
         } else {
             0
         };
@@ -323,6 +340,14 @@ impl Atlas {
         for chart in &charts {
             for &triangle in &chart.triangles {
                 atlas.triangle_texel_scales[triangle as usize] = chart.texel_scale;
+            }
+        }
+        if charts.iter().any(|chart| chart.small_near_light) {
+            atlas.triangle_in_small_near_light_chart = vec![false; scene.mesh.triangles.len()];
+            for chart in charts.iter().filter(|chart| chart.small_near_light) {
+                for &triangle in &chart.triangles {
+                    atlas.triangle_in_small_near_light_chart[triangle as usize] = true;
+                }
             }
         }
         atlas.near_light_charts = near_light_charts;
@@ -478,6 +503,7 @@ impl Atlas {
             from_mesh_uvs: false,
             chart_count: 0,
             near_light_charts: 0,
+            triangle_in_small_near_light_chart: Vec::new(),
             triangle_texel_scales: Vec::new(),
             metres_per_texel: 0.0,
             detail: None,
@@ -672,6 +698,7 @@ impl Atlas {
             + self.receivers.len() * (8 + 12 + 12 + 4 + 8 + 12)
             + self.dilation.len() * 8
             + self.triangle_texel_scales.len() * 4
+            + self.triangle_in_small_near_light_chart.len()
     }
 }
 
@@ -725,6 +752,8 @@ struct Chart {
     tangent: Vec3,
     bitangent: Vec3,
     texel_scale: f32,
+    /// Refined near a light as a small chart, all of it near the light.
+    small_near_light: bool,
 }
 
 /// A chart near a point or spot light gets texels no longer than its
@@ -738,19 +767,26 @@ pub const NEAR_LIGHT_DISTANCE_PER_TEXEL: f32 = 4.0;
 /// detail region's.
 const NEAR_LIGHT_FINEST_SCALE: f32 = 0.125;
 
-/// A chart refined near a light holds at most this many texels.
+/// A small chart refined near a light holds at most this many texels.
 const NEAR_LIGHT_CHART_TEXELS: f32 = 256.0;
 
-/// Only charts of at most this many texels at the room's texel size are
-/// refined: a lampshade's face (one or two texels), not a wall or ceiling
-/// beside a light, which the room's texels already resolve into several
-/// and whose refinement would take a requested atlas's texels from
-/// everything else (the shipped two rooms at a 64-texel lightmap: 4
-/// charts near the light made every other texel 26 % longer).
+/// Charts of at most this many texels at the room's texel size are small:
+/// a lampshade's face (one or two texels). They are refined to
+/// [`NEAR_LIGHT_CHART_TEXELS`] at most, whatever the atlas's sizing.
 const NEAR_LIGHT_SMALL_CHART_TEXELS: f32 = 16.0;
 
-/// Gives the small charts that stand near a point or spot light of the
-/// scene file, and face it, finer texels; returns how many changed.
+/// A larger chart refined near a light (a wall or floor beside a lamp)
+/// holds at most this many texels: on a 7 m room's 21 m^2 wall, 7 cm
+/// texels. Its light varies fast only near the lamp, but a chart has one
+/// texel size, so the budget bounds what the rest of it costs.
+const NEAR_LIGHT_LARGE_CHART_TEXELS: f32 = 4096.0;
+
+/// Gives the charts that stand near a point or spot light of the scene
+/// file, and face it, finer texels; returns how many changed. Small charts
+/// are refined always; larger ones only when `large_too` (an atlas whose
+/// size follows its charts, not a requested resolution, where every other
+/// chart's texels would pay for them: the shipped two rooms at a 64-texel
+/// lightmap, 4 charts near the light made every other texel 26 % longer).
 ///
 /// A light inside a shade, a sconce or a recess heats the few square
 /// decimetres around it hundreds of times brighter than the room, and much
@@ -762,11 +798,26 @@ const NEAR_LIGHT_SMALL_CHART_TEXELS: f32 = 16.0;
 /// and the bounces inside are not resolved, so every technique lit the
 /// rooms of such lamps too dark. A chart's back (the shade's outside) is
 /// lit as the rest of the room is and keeps its texels: refined too, it
-/// made SRP's room brighter than the path tracer's. Only the charts near
-/// the lights change, so a scene whose lights stand in the open keeps its
-/// atlas. The lights are those of the scene file: a light moved at run
-/// time leaves the refinement where the file put it.
-fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32) -> usize {
+/// made SRP's room brighter than the path tracer's.
+///
+/// A lamp a few centimetres from a corner makes a hot spot a few of its
+/// distances wide on each wall, and the walls light each other from
+/// them: their indirect light varies over a decimetre where a room's
+/// texels are 20 cm (a generated 7 m room with a lamp 11 cm from a corner:
+/// 25 % over tiles with every technique, 8 % at 10 cm texels). So a larger
+/// chart within four of its texels of a light is refined, within
+/// [`NEAR_LIGHT_LARGE_CHART_TEXELS`], when another chart turned from it by
+/// more than 60 degrees is that near the same light too.
+///
+/// Only the charts near the lights change, so a scene whose lights stand
+/// in the open keeps its atlas. The lights are those of the scene file: a
+/// light moved at run time leaves the refinement where the file put it.
+fn refine_near_lights(
+    scene: &Scene,
+    charts: &mut [Chart],
+    metres_per_texel: f32,
+    large_too: bool,
+) -> usize {
     let positions: Vec<Vec3> = scene
         .lights
         .iter()
@@ -775,43 +826,99 @@ fn refine_near_lights(scene: &Scene, charts: &mut [Chart], metres_per_texel: f32
     if positions.is_empty() || metres_per_texel.is_nan() || metres_per_texel <= 0.0 {
         return 0;
     }
-    let mut refined = 0;
     let small = NEAR_LIGHT_SMALL_CHART_TEXELS * metres_per_texel * metres_per_texel;
-    for chart in charts.iter_mut().filter(|chart| chart.texel_scale == 1.0) {
-        let area: f32 = chart
-            .triangles
-            .iter()
-            .map(|&triangle| scene.mesh.area(triangle as usize))
-            .sum();
-        if area > small {
-            continue;
-        }
-        let mut low = Vec3::splat(f32::INFINITY);
-        let mut high = Vec3::splat(f32::NEG_INFINITY);
-        for &triangle in &chart.triangles {
-            for vertex in scene.mesh.vertices(triangle as usize) {
-                low = low.min(vertex);
-                high = high.max(vertex);
+    let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * metres_per_texel;
+    let mesh = &scene.mesh;
+    // Per chart of the detail region: its area, its mean normal and its
+    // distance to each light in front of it (infinite for the others).
+    let measured: Vec<Option<(f32, Vec3, Vec<f32>)>> = charts
+        .iter()
+        .map(|chart| {
+            if chart.texel_scale != 1.0 {
+                return None;
             }
-        }
-        // Only a light in front of the chart lights it directly; its back
-        // (a shade's outside) is lit as the rest of the room is.
-        let faces = |light: Vec3| {
-            chart
-                .triangles
+            let mut area = 0.0;
+            let mut normal = Vec3::ZERO;
+            let mut low = Vec3::splat(f32::INFINITY);
+            let mut high = Vec3::splat(f32::NEG_INFINITY);
+            for &triangle in &chart.triangles {
+                let triangle = triangle as usize;
+                area += mesh.area(triangle);
+                normal += mesh.geometric_normal(triangle) * mesh.area(triangle);
+                for vertex in mesh.vertices(triangle) {
+                    low = low.min(vertex);
+                    high = high.max(vertex);
+                }
+            }
+            // Only a light in front of the chart lights it directly; its
+            // back (a shade's outside) is lit as the rest of the room is.
+            let distances = positions
                 .iter()
-                .any(|&triangle| scene.mesh.faces_point(triangle as usize, light))
+                .map(|&light| {
+                    let faces = chart
+                        .triangles
+                        .iter()
+                        .any(|&triangle| mesh.faces_point(triangle as usize, light));
+                    if faces {
+                        light.clamp(low, high).distance(light)
+                    } else {
+                        f32::INFINITY
+                    }
+                })
+                .collect();
+            Some((area, normal.normalize_or_zero(), distances))
+        })
+        .collect();
+    // A large chart's indirect light varies fast near a light only where
+    // another surface, turned from it by more than 60 degrees, is near the
+    // light too (a corner, a wall's foot): each lights the other from its
+    // hot spot. A ceiling above a lamp in the open has a hot spot of direct
+    // light, which the indirect lightmap does not hold, and keeps its
+    // texels.
+    let corner_distance = |index: usize| -> f32 {
+        let Some((_, normal, distances)) = &measured[index] else {
+            return f32::INFINITY;
         };
-        let distance = positions
-            .iter()
-            .filter(|&&light| faces(light))
-            .map(|&light| light.clamp(low, high).distance(light))
-            .fold(f32::INFINITY, f32::min);
+        (0..positions.len())
+            .filter(|&light| distances[light] < reach)
+            .filter(|&light| {
+                measured.iter().enumerate().any(|(other, entry)| {
+                    other != index
+                        && entry
+                            .as_ref()
+                            .is_some_and(|(_, other_normal, other_distances)| {
+                                other_distances[light] < reach
+                                    && normal.dot(*other_normal).abs() < 0.5
+                            })
+                })
+            })
+            .map(|light| distances[light])
+            .fold(f32::INFINITY, f32::min)
+    };
+    let mut refined = 0;
+    for index in 0..charts.len() {
+        let Some((area, _, distances)) = &measured[index] else {
+            continue;
+        };
+        let is_small = *area <= small;
+        let distance = if is_small {
+            distances.iter().copied().fold(f32::INFINITY, f32::min)
+        } else if large_too {
+            corner_distance(index)
+        } else {
+            continue;
+        };
         let wanted = distance / NEAR_LIGHT_DISTANCE_PER_TEXEL / metres_per_texel;
-        let within_budget = (area / NEAR_LIGHT_CHART_TEXELS).sqrt() / metres_per_texel;
+        let budget = if is_small {
+            NEAR_LIGHT_CHART_TEXELS
+        } else {
+            NEAR_LIGHT_LARGE_CHART_TEXELS
+        };
+        let within_budget = (area / budget).sqrt() / metres_per_texel;
         let scale = wanted.max(within_budget).max(NEAR_LIGHT_FINEST_SCALE);
         if scale < 1.0 {
-            chart.texel_scale = scale;
+            charts[index].texel_scale = scale;
+            charts[index].small_near_light = is_small;
             refined += 1;
         }
     }
@@ -973,6 +1080,7 @@ fn grow_charts(
             tangent,
             bitangent,
             texel_scale: DetailRegion::texel_scale(rings[seed]),
+            small_near_light: false,
         });
     }
     charts

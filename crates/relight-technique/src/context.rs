@@ -641,6 +641,60 @@ mod tests {
         );
     }
 
+    /// Generated variant 15 has a point light 11 cm from a 7 m room's
+    /// corner. At the automatic lightmap the walls beside it get texels of
+    /// at most 10 cm (the room's are 20 cm), as whole large charts, not
+    /// as the small ones whose every triangle the final gather samples;
+    /// at a requested resolution they keep the room's texels, which no
+    /// other chart pays for.
+    #[test]
+    fn walls_beside_a_lamp_in_a_corner_get_finer_texels() {
+        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+        let folder = tempfile::tempdir().expect("temporary folder");
+        let path = variant(VARIANTS_DEFAULT_SEED, 15)
+            .write(folder.path())
+            .expect("variant written");
+        let near_texels = |lightmap: TexelDensity| {
+            let scene = relight_scene::load_scene(&path).expect("variant loads");
+            let light = scene.lights[0].position().expect("a point light");
+            let settings = ContextSettings {
+                lightmap,
+                ..ContextSettings::default()
+            };
+            let context = SceneContext::new(scene, settings).expect("context");
+            let atlas = &context.atlas;
+            let receivers = &atlas.receivers;
+            let near: Vec<u32> = (0..receivers.len())
+                .filter(|&index| receivers.positions[index].distance(light) < 0.3)
+                .map(|index| receivers.triangles[index])
+                .collect();
+            assert!(
+                near.iter()
+                    .all(|&triangle| !atlas.in_small_near_light_chart(triangle)),
+                "a wall counted as a small chart"
+            );
+            let edges: Vec<f32> = near
+                .iter()
+                .map(|&triangle| atlas.texel_area(triangle).sqrt())
+                .collect();
+            (edges, atlas.metres_per_texel)
+        };
+        let (automatic, room) = near_texels(TexelDensity::default());
+        assert!(room > 0.15, "the room's texels: {room} m");
+        assert!(
+            automatic.len() > 8,
+            "{} receivers near the lamp",
+            automatic.len()
+        );
+        let coarsest = automatic.iter().copied().fold(0.0f32, f32::max);
+        assert!(coarsest <= 0.1, "{coarsest} m texels near the lamp");
+        let (requested, room) = near_texels(TexelDensity::TargetResolution(128));
+        assert!(
+            requested.iter().all(|&edge| (edge - room).abs() < 1e-6),
+            "a requested resolution refined the walls: {requested:?} against {room}"
+        );
+    }
+
     /// On the shipped Cornell box some texel centres lie behind a wall (the
     /// ceiling runs under the slightly tilted right wall) or under a box.
     /// After relocation only texels a surface covers completely may still

@@ -952,10 +952,10 @@ impl WeightedRows {
     }
 }
 
-/// Surfaces a point or spot light stands close to: the charts the atlas
-/// refined near a light (the inside of a lamp's shade, a sconce's recess),
-/// and on the larger surfaces it did not refine (a wall or floor beside a
-/// lamp) the part within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their texels
+/// Surfaces a point or spot light stands close to: the small charts the
+/// atlas refined near a light (the inside of a lamp's shade, a sconce's
+/// recess), and on the larger surfaces (a wall or floor beside a lamp,
+/// refined or not) the part within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their texels
 /// from the light, where a texel is wider than a quarter of its distance
 /// to the light and the light varies by more than about 1.5x across it.
 /// Their direct light is tens to thousands of times
@@ -1066,8 +1066,10 @@ fn disc_frame(centre: Vec3, normal: Vec3) -> impl Fn(Vec3) -> Vec2 {
 }
 
 /// The triangles in front of each point or spot light of the scene file
-/// within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their own texels (the refined
-/// charts excepted, which are hot whole): one disc per triangle and light,
+/// within `NEAR_LIGHT_DISTANCE_PER_TEXEL` of their own texels (the small
+/// charts refined near a light excepted, which are hot whole; a large
+/// refined chart's texels are finer, so its disc is smaller): one disc per
+/// triangle and light,
 /// a triangle's discs together, in the lights' order, with points four a
 /// texel edge: at two, where the points read a spot light's patch on the
 /// floor (variant 88), the unlit room's light moved by 5 % with the
@@ -1084,7 +1086,7 @@ fn near_light_discs(
     let metres_per_texel = context.atlas.metres_per_texel;
     (0..mesh.triangles.len())
         .into_par_iter()
-        .filter(|&triangle| scale_of(triangle) >= 1.0)
+        .filter(|&triangle| !context.atlas.in_small_near_light_chart(triangle as u32))
         .flat_map_iter(|triangle| {
             let texel = metres_per_texel * scale_of(triangle);
             let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * texel;
@@ -1146,8 +1148,8 @@ fn scene_file_light_positions(context: &SceneContext) -> Vec<Vec3> {
 /// needs half its view on hot surfaces.
 const HOT_HITS_FOR_RAYS: f32 = 32.0;
 
-/// The most samples on one hot triangle: a refined chart has at most 256
-/// texels, the most a chart near a light is given.
+/// The most samples on one hot triangle: a small chart refined near a
+/// light has at most 256 texels.
 const HOT_SAMPLES_PER_TRIANGLE: usize = 256;
 
 /// The most samples in one hot disc: four a texel edge over a disc of
@@ -1176,7 +1178,7 @@ impl HotSurfaces {
         };
         // A sample a texel, stratified over each triangle.
         let wanted: Vec<(usize, f32, usize)> = (0..triangle_count)
-            .filter(|&triangle| scale_of(triangle) < 1.0)
+            .filter(|&triangle| atlas.in_small_near_light_chart(triangle as u32))
             .filter_map(|triangle| {
                 let area = mesh.area(triangle);
                 let texel = atlas.metres_per_texel * scale_of(triangle);
@@ -2137,8 +2139,10 @@ mod tests {
         let hot = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         let mesh = &context.scene.mesh;
         // Per plane (its normal and offset, rounded; the variant has one
-        // light), the area the samples stand for.
-        let mut planes: std::collections::BTreeMap<[i64; 4], f32> = Default::default();
+        // light), the area the samples stand for and the plane's texel
+        // (a wall refined near the lamp has finer texels, so a smaller
+        // disc).
+        let mut planes: std::collections::BTreeMap<[i64; 4], (f32, f32)> = Default::default();
         for sample in &hot.samples {
             if hot.triangles[sample.triangle as usize] {
                 continue;
@@ -2146,13 +2150,15 @@ mod tests {
             let normal = mesh.geometric_normal(sample.triangle as usize);
             let offset = normal.dot(mesh.vertices(sample.triangle as usize)[0]);
             let key = [normal.x, normal.y, normal.z, offset].map(|v| (v * 1e3).round() as i64);
-            *planes.entry(key).or_default() += sample.area;
+            let texel = context.atlas.metres_per_texel
+                * context.atlas.triangle_texel_scales[sample.triangle as usize];
+            planes.entry(key).or_insert((0.0, texel)).0 += sample.area;
         }
         assert!(!planes.is_empty());
-        let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * context.atlas.metres_per_texel;
         let light = context.scene.lights[0].position().expect("a point light");
         let mut fullest = 0.0f32;
-        for (key, area) in planes {
+        for (key, (area, texel)) in planes {
+            let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * texel;
             let normal = Vec3::new(key[0] as f32, key[1] as f32, key[2] as f32) / 1e3;
             let height = normal.dot(light) - key[3] as f32 / 1e3;
             let disc = std::f32::consts::PI * (reach * reach - height * height);
@@ -2173,19 +2179,12 @@ mod tests {
     fn hot_samples_keep_the_hot_area_when_thinned() {
         let context = variant_context(39);
         let mesh = &context.scene.mesh;
-        let hot_area: f32 = context
-            .atlas
-            .triangle_texel_scales
-            .iter()
-            .enumerate()
-            .filter(|&(_, &scale)| scale < 1.0)
-            .map(|(triangle, _)| mesh.area(triangle))
+        let hot_area: f32 = (0..mesh.triangles.len())
+            .filter(|&triangle| context.atlas.in_small_near_light_chart(triangle as u32))
+            .map(|triangle| mesh.area(triangle))
             .sum();
-        let hot_triangles = context
-            .atlas
-            .triangle_texel_scales
-            .iter()
-            .filter(|&&scale| scale < 1.0)
+        let hot_triangles = (0..mesh.triangles.len())
+            .filter(|&triangle| context.atlas.in_small_near_light_chart(triangle as u32))
             .count();
         let full = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         for budget in [HOT_SAMPLE_BUDGET, 256, 1] {
