@@ -557,6 +557,17 @@ fn enclosure_directions() -> [Vec3; 14] {
 mod tests {
     use super::*;
 
+    /// Variant `index` of the generated default family, written to a
+    /// temporary folder that lives as long as the returned guard.
+    fn default_variant(index: usize) -> (tempfile::TempDir, std::path::PathBuf) {
+        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+        let folder = tempfile::tempdir().expect("temporary folder");
+        let path = variant(VARIANTS_DEFAULT_SEED, index)
+            .write(folder.path())
+            .expect("variant written");
+        (folder, path)
+    }
+
     /// Generated variant 97 is two rooms modelled as two boxes: each floor
     /// is its own quad, and the quads meet under the two boxes' coincident
     /// walls, with a doorway. One chart held both floors, so texels
@@ -568,11 +579,7 @@ mod tests {
     /// floor's side of the partition (within 1 mm, rounding).
     #[test]
     fn rooms_modelled_as_two_boxes_keep_their_floors_apart() {
-        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
-        let folder = tempfile::tempdir().expect("temporary folder");
-        let path = variant(VARIANTS_DEFAULT_SEED, 97)
-            .write(folder.path())
-            .expect("variant written");
+        let (_folder, path) = default_variant(97);
         let scene = relight_scene::load_scene(&path).expect("variant loads");
         let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
         let mesh = &context.scene.mesh;
@@ -649,11 +656,7 @@ mod tests {
     /// other chart pays for.
     #[test]
     fn walls_beside_a_lamp_in_a_corner_get_finer_texels() {
-        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
-        let folder = tempfile::tempdir().expect("temporary folder");
-        let path = variant(VARIANTS_DEFAULT_SEED, 15)
-            .write(folder.path())
-            .expect("variant written");
+        let (_folder, path) = default_variant(15);
         let near_texels = |lightmap: TexelDensity| {
             let scene = relight_scene::load_scene(&path).expect("variant loads");
             let light = scene.lights[0].position().expect("a point light");
