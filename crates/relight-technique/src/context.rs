@@ -320,18 +320,20 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// seams of lightmap bakers), and a reference computed there measures a
 /// point nobody sees. Rays in the texel's plane, as long as half its
 /// diagonal, find such walls by their back faces; the receiver moves just
-/// past the nearest one, into the middle of what is left of the texel,
-/// staying in its own plane. A receiver that sits on the line where another
-/// surface meets its own moves a quarter texel away from it, for the same
-/// reason. Receivers a surface
-/// covers entirely stay where they are: nothing of them is visible. A
-/// receiver inside a slab (a wall's back on both sides of it) moves only
-/// within its own texel, so a texel that a partition covers is never
-/// given either room's light; [`fill_hidden_texels`] decides what it
-/// shows. A receiver never crosses a wall that stands on the edge where its
-/// own triangle ends: of two coincident walls (two rooms' boxes sharing
-/// one) one turns its back to every receiver beside it, and those
-/// receivers moved into the other room.
+/// past the nearest one whose far side is not another chart's surface,
+/// into the middle of what is left of the texel, staying in its own plane.
+/// A receiver that sits on the line where another surface meets its own
+/// moves a quarter texel away from it, for the same reason. Receivers a
+/// surface covers entirely stay where they are: nothing of them is
+/// visible. A receiver inside a slab (a wall's back on both sides of it)
+/// moves only within its own texel, so a texel that a partition covers is
+/// never given either room's light; [`fill_hidden_texels`] decides what it
+/// shows. Beyond two rooms' coincident walls (each room its own box) is the
+/// other room's floor, another chart (charts stop at walls standing on
+/// their edges) whose lookups never read this texel: moved there, a
+/// receiver would show that room's light beside the wall. Where the
+/// receiver's own triangle ends does not tell that case apart: a fine
+/// floor's diagonal ends at a wall too, and so does an object's foot.
 pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
     use rayon::prelude::*;
     let texel = atlas.metres_per_texel;
@@ -359,16 +361,38 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 };
                 inside(uv.x, x) && inside(uv.y, y)
             };
+            // Whether the surface at `point` belongs to another chart: its
+            // lookups read texels far from this one (charts lie at least
+            // two gutters apart), never this texel. A point on no surface
+            // facing this way (a ray along a triangle's edge can miss it;
+            // a box's bottom lies on the floor) counts as this chart's.
+            let on_another_chart = |point: Vec3| {
+                bvh.intersect(&Ray {
+                    origin: point + normal * lift,
+                    direction: -normal,
+                    t_max: 2.0 * lift,
+                })
+                .is_some_and(|hit| {
+                    let surface = hit.triangle as usize;
+                    if scene.mesh.geometric_normal(surface).dot(normal) < 0.5 {
+                        return false;
+                    }
+                    let uv = planar_uv(scene.mesh.vertices(surface), &triangle_uvs[surface], point);
+                    let far = |value: f32, low: u32| (value - (low as f32 + 0.5)).abs() > 2.0;
+                    far(uv.x, x) || far(uv.y, y)
+                })
+            };
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
             // A corner can put a receiver behind two walls; each step
             // crosses one.
             for pass in 0..3 {
                 let origin = *position + normal * lift;
-                let mut behind: Option<(f32, Vec3)> = None;
+                // Walls met from behind, by step: (distance, direction).
+                let mut behind = [None::<(f32, Vec3)>; 8];
                 let mut touching: Option<(f32, Vec3)> = None;
                 // Steps whose ray met the back of a wall.
                 let mut backs = 0u8;
-                for step in 0..8 {
+                for (step, wall_behind) in behind.iter_mut().enumerate() {
                     let angle = step as f32 * std::f32::consts::FRAC_PI_4;
                     let direction = tangent * angle.cos() + bitangent * angle.sin();
                     // Starting a margin back catches a surface the
@@ -390,14 +414,10 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         // nothing about which side the receiver is on.
                         continue;
                     }
-                    // Whether the receiver's triangle stops before `step`
-                    // from it. Where two coincident walls (two rooms'
-                    // boxes sharing a wall) stand on its edge, one turns
-                    // its back to the receiver and the other faces it, and
-                    // only its triangle, ending at the wall, tells its
-                    // side: it never crosses such a wall.
-                    let leaves = |step: Vec3| {
-                        planar_barycentric(corners, *position + step)
+                    // Whether the receiver's triangle stops before
+                    // `offset` from it.
+                    let leaves = |offset: Vec3| {
+                        planar_barycentric(corners, *position + offset)
                             .is_some_and(|(b, c)| b < 0.0 || c < 0.0 || b + c > 1.0)
                     };
                     let slot = if cosine > 0.0 {
@@ -406,16 +426,9 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                             // the receiver faces away from it.
                             continue;
                         }
-                        let edge_at_wall = !leaves(direction * (distance - 0.5 * margin).max(0.0))
-                            && leaves(direction * (distance + margin));
-                        if !edge_at_wall {
-                            backs |= 1 << step;
-                            &mut behind
-                        } else if distance < margin {
-                            &mut touching
-                        } else {
-                            continue;
-                        }
+                        backs |= 1 << step;
+                        *wall_behind = Some((distance, direction));
+                        continue;
                     } else if distance < margin && !leaves(-direction * margin) {
                         &mut touching
                     } else {
@@ -430,7 +443,15 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 // behind a one-sided wall.
                 let enclosed =
                     (0..4).any(|step| backs >> step & 1 == 1 && backs >> (step + 4) & 1 == 1);
-                if let Some((distance, direction)) = behind {
+                // The nearest wall behind the receiver whose far side is
+                // not another chart's surface (see the function's doc).
+                let mut walls = behind;
+                walls.sort_by(|a, b| match (a, b) {
+                    (Some((a, _)), Some((b, _))) => a.total_cmp(b),
+                    (a, b) => b.is_some().cmp(&a.is_some()),
+                });
+                let (mut crossing, mut covered) = (None, false);
+                for &(distance, direction) in walls.iter().flatten() {
                     // The middle of what is left of the texel beyond the
                     // wall, so the receiver stands for its visible part.
                     // A receiver inside a solid stands for its own
@@ -454,9 +475,18 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                                 .find(|&moved| in_texel(moved))
                         })
                     else {
+                        covered = true;
                         break;
                     };
+                    if !on_another_chart(moved) {
+                        crossing = Some(moved);
+                        break;
+                    }
+                }
+                if let Some(moved) = crossing {
                     *position = moved;
+                } else if covered {
+                    break;
                 } else if let (0, Some((distance, direction))) = (pass, touching) {
                     // On the line where another surface meets this one (a
                     // chart edge through the texel centre): the middle of
@@ -568,6 +598,13 @@ mod tests {
         (folder, path)
     }
 
+    /// The context of [`default_variant`] `index` at the default settings.
+    fn default_variant_context(index: usize) -> SceneContext {
+        let (_folder, path) = default_variant(index);
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        SceneContext::new(scene, ContextSettings::default()).expect("context")
+    }
+
     /// Generated variant 97 is two rooms modelled as two boxes: each floor
     /// is its own quad, and the quads meet under the two boxes' coincident
     /// walls, with a doorway. One chart held both floors, so texels
@@ -579,9 +616,7 @@ mod tests {
     /// floor's side of the partition (within 1 mm, rounding).
     #[test]
     fn rooms_modelled_as_two_boxes_keep_their_floors_apart() {
-        let (_folder, path) = default_variant(97);
-        let scene = relight_scene::load_scene(&path).expect("variant loads");
-        let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
+        let context = default_variant_context(97);
         let mesh = &context.scene.mesh;
         let floors: Vec<usize> = (0..mesh.triangles.len())
             .filter(|&t| {
@@ -645,6 +680,61 @@ mod tests {
             "{} floor receivers off their triangle, e.g. {:?}",
             strays.len(),
             strays.first().map(|&index| receivers.positions[index])
+        );
+    }
+
+    /// Generated variant 38 is a hall whose single-plane walls, floor and
+    /// ceiling run 0.5 m past each other, all cut into 0.68 m cells, with
+    /// boxes standing flush on the floor and 9 mm into it. A ceiling
+    /// receiver whose texel reaches past a wall into the hall moves into
+    /// the hall, and an object's receiver below the floor moves above it.
+    /// When receivers kept to their side of any wall that met their
+    /// triangle's edge along a ray (a fine ceiling's diagonal, a box's
+    /// foot), 13 ceiling receivers stayed over a fifth of a texel outside
+    /// the walls and 5 of the boxes' below the floor. The floor is not
+    /// counted: where a box stands against a wall, its back and the wall
+    /// are coincident and a ray meets either, so a few floor receivers
+    /// beside it stay outside.
+    #[test]
+    fn receivers_beside_one_wall_move_to_its_front() {
+        let context = default_variant_context(38);
+        let mesh = &context.scene.mesh;
+        let texel = context.atlas.metres_per_texel;
+        // The hall's inside: between the walls' planes.
+        let (mut low, mut high) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for t in 0..mesh.triangles.len() {
+            let normal = mesh.geometric_normal(t);
+            let corner = mesh.vertices(t)[0];
+            for axis in [0, 2] {
+                if normal[axis].abs() > 0.99 {
+                    low[axis] = low[axis].min(corner[axis]);
+                    high[axis] = high[axis].max(corner[axis]);
+                }
+            }
+        }
+        let receivers = &context.atlas.receivers;
+        let (mut outside, mut below) = (0, 0);
+        for index in 0..receivers.len() {
+            let (position, normal) = (receivers.positions[index], receivers.normals[index]);
+            let beyond =
+                |axis: usize| (low[axis] - position[axis]).max(position[axis] - high[axis]);
+            let corners = mesh.vertices(receivers.triangles[index] as usize);
+            // Off the floor, inside the walls: the boxes (and the ceiling,
+            // never below the floor).
+            let object = corners.iter().all(|corner| {
+                [0, 2].iter().all(|&axis| {
+                    corner[axis] > low[axis] + 1e-3 && corner[axis] < high[axis] - 1e-3
+                })
+            }) && corners.iter().any(|corner| corner.y > 1e-3);
+            if normal.y < -0.99 {
+                let out = beyond(0).max(beyond(2));
+                outside += usize::from(out > 0.2 * texel);
+            }
+            below += usize::from(object && position.y < -0.01);
+        }
+        assert!(
+            outside == 0 && below == 0,
+            "{outside} ceiling receivers outside the walls, {below} objects' below the floor"
         );
     }
 
