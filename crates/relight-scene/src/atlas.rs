@@ -843,8 +843,9 @@ fn refine_near_lights(
             let mut high = Vec3::splat(f32::NEG_INFINITY);
             for &triangle in &chart.triangles {
                 let triangle = triangle as usize;
-                area += mesh.area(triangle);
-                normal += mesh.geometric_normal(triangle) * mesh.area(triangle);
+                let triangle_area = mesh.area(triangle);
+                area += triangle_area;
+                normal += mesh.geometric_normal(triangle) * triangle_area;
                 for vertex in mesh.vertices(triangle) {
                     low = low.min(vertex);
                     high = high.max(vertex);

@@ -390,8 +390,6 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 // Walls met from behind, by step: (distance, direction).
                 let mut behind = [None::<(f32, Vec3)>; 8];
                 let mut touching: Option<(f32, Vec3)> = None;
-                // Steps whose ray met the back of a wall.
-                let mut backs = 0u8;
                 for (step, wall_behind) in behind.iter_mut().enumerate() {
                     let angle = step as f32 * std::f32::consts::FRAC_PI_4;
                     let direction = tangent * angle.cos() + bitangent * angle.sin();
@@ -420,36 +418,30 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         planar_barycentric(corners, *position + offset)
                             .is_some_and(|(b, c)| b < 0.0 || c < 0.0 || b + c > 1.0)
                     };
-                    let slot = if cosine > 0.0 {
-                        if hit.t < margin {
-                            // Behind the start point: a wall this side of
-                            // the receiver faces away from it.
-                            continue;
+                    if cosine > 0.0 {
+                        // A wall behind the start point faces away from
+                        // the receiver on this side of it.
+                        if hit.t >= margin {
+                            *wall_behind = Some((distance, direction));
                         }
-                        backs |= 1 << step;
-                        *wall_behind = Some((distance, direction));
-                        continue;
-                    } else if distance < margin && !leaves(-direction * margin) {
-                        &mut touching
-                    } else {
-                        continue;
-                    };
-                    if slot.is_none_or(|(t, _)| distance < t) {
-                        *slot = Some((distance, direction));
+                    } else if distance < margin
+                        && !leaves(-direction * margin)
+                        && touching.is_none_or(|(t, _)| distance < t)
+                    {
+                        touching = Some((distance, direction));
                     }
                 }
                 // Backs of walls on both sides: inside a slab (a
                 // partition, an object's side) rather than in the open
                 // behind a one-sided wall.
                 let enclosed =
-                    (0..4).any(|step| backs >> step & 1 == 1 && backs >> (step + 4) & 1 == 1);
+                    (0..4).any(|step| behind[step].is_some() && behind[step + 4].is_some());
                 // The nearest wall behind the receiver whose far side is
                 // not another chart's surface (see the function's doc).
                 let mut walls = behind;
-                walls.sort_by(|a, b| match (a, b) {
-                    (Some((a, _)), Some((b, _))) => a.total_cmp(b),
-                    (a, b) => b.is_some().cmp(&a.is_some()),
-                });
+                let wall_distance =
+                    |wall: &Option<(f32, Vec3)>| wall.map_or(f32::INFINITY, |(d, _)| d);
+                walls.sort_by(|a, b| wall_distance(a).total_cmp(&wall_distance(b)));
                 let (mut crossing, mut covered) = (None, false);
                 for &(distance, direction) in walls.iter().flatten() {
                     // The middle of what is left of the texel beyond the
@@ -586,24 +578,7 @@ fn enclosure_directions() -> [Vec3; 14] {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// Variant `index` of the generated default family, written to a
-    /// temporary folder that lives as long as the returned guard.
-    fn default_variant(index: usize) -> (tempfile::TempDir, std::path::PathBuf) {
-        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
-        let folder = tempfile::tempdir().expect("temporary folder");
-        let path = variant(VARIANTS_DEFAULT_SEED, index)
-            .write(folder.path())
-            .expect("variant written");
-        (folder, path)
-    }
-
-    /// The context of [`default_variant`] `index` at the default settings.
-    fn default_variant_context(index: usize) -> SceneContext {
-        let (_folder, path) = default_variant(index);
-        let scene = relight_scene::load_scene(&path).expect("variant loads");
-        SceneContext::new(scene, ContextSettings::default()).expect("context")
-    }
+    use crate::test_variants::{default_variant, default_variant_context};
 
     /// Generated variant 97 is two rooms modelled as two boxes: each floor
     /// is its own quad, and the quads meet under the two boxes' coincident

@@ -1673,6 +1673,7 @@ pub(crate) fn gather_directions(rays: u32) -> Vec<Vec3> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_variants::default_variant_context;
     use crate::ContextSettings;
 
     fn point_lit_box() -> SceneContext {
@@ -1975,18 +1976,6 @@ mod tests {
         }
     }
 
-    /// Variant `index` of the generator's default family.
-    fn variant_context(index: usize) -> SceneContext {
-        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
-        let variant = variant(VARIANTS_DEFAULT_SEED, index);
-        let folder = tempfile::tempdir().expect("temporary folder");
-        let path = variant
-            .write(&folder.path().join(variant.name()))
-            .expect("variant writes");
-        let scene = relight_scene::load_scene(&path).expect("variant loads");
-        SceneContext::new(scene, ContextSettings::default()).expect("context")
-    }
-
     /// One bounce of direct light at every `stride`-th gathering receiver,
     /// traced ray by ray over `rays` cosine rays with the direct light at
     /// each exact hit: what the gather estimates, with the hot surfaces
@@ -2039,7 +2028,7 @@ mod tests {
     /// hot surfaces its error relative to the light there over 256 plain
     /// rays' (the spots).
     fn hot_light_against_rays(index: usize) -> (f32, f32) {
-        let context = variant_context(index);
+        let context = default_variant_context(index);
         let settings = FinalGatherSettings {
             reach_texels: Some(f32::INFINITY),
             rays: 256,
@@ -2097,7 +2086,7 @@ mod tests {
     ///   the gather measured 0.98.
     #[test]
     fn hot_surfaces_beside_a_shaded_lamp_are_sampled_not_hit() {
-        assert!(variant_context(39).atlas.near_light_charts > 0);
+        assert!(default_variant_context(39).atlas.near_light_charts > 0);
         let (ratio, relative_error) = hot_light_against_rays(39);
         assert!((ratio - 1.0).abs() < 0.02, "{ratio:.3}x");
         assert!(relative_error < 0.35, "{relative_error:.2}");
@@ -2118,7 +2107,7 @@ mod tests {
     /// - error under 0.35 of 256 plain rays' (measured 0.13).
     #[test]
     fn a_hot_spot_on_a_large_wall_is_sampled_not_hit() {
-        let context = variant_context(25);
+        let context = default_variant_context(25);
         let hot = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         assert!(!hot.balls.is_empty());
         let (ratio, relative_error) = hot_light_against_rays(25);
@@ -2135,7 +2124,7 @@ mod tests {
     /// by a few per cent (measured 0.996 of it); 2 % either way.
     #[test]
     fn hot_discs_stand_for_their_area() {
-        let context = variant_context(25);
+        let context = default_variant_context(25);
         let hot = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         let mesh = &context.scene.mesh;
         // Per plane (its normal and offset, rounded; the variant has one
@@ -2177,15 +2166,13 @@ mod tests {
     /// at most one sample a triangle past the budget.
     #[test]
     fn hot_samples_keep_the_hot_area_when_thinned() {
-        let context = variant_context(39);
+        let context = default_variant_context(39);
         let mesh = &context.scene.mesh;
-        let hot_area: f32 = (0..mesh.triangles.len())
+        let hot: Vec<usize> = (0..mesh.triangles.len())
             .filter(|&triangle| context.atlas.in_small_near_light_chart(triangle as u32))
-            .map(|triangle| mesh.area(triangle))
-            .sum();
-        let hot_triangles = (0..mesh.triangles.len())
-            .filter(|&triangle| context.atlas.in_small_near_light_chart(triangle as u32))
-            .count();
+            .collect();
+        let hot_area: f32 = hot.iter().map(|&triangle| mesh.area(triangle)).sum();
+        let hot_triangles = hot.len();
         let full = HotSurfaces::of(&context, HOT_SAMPLE_BUDGET);
         for budget in [HOT_SAMPLE_BUDGET, 256, 1] {
             let hot = HotSurfaces::of(&context, budget);

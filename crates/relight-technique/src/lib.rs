@@ -82,6 +82,8 @@ mod payload;
 pub mod robustness;
 mod settling;
 mod shard;
+#[cfg(test)]
+mod test_variants;
 
 pub use bakefile::{
     read_bake, scene_fingerprint, write_bake_atomic, BakeHeader, BAKE_FORMAT_VERSION, BAKE_MAGIC,

@@ -1,0 +1,21 @@
+//! Generated variants for this crate's unit tests.
+
+use crate::{ContextSettings, SceneContext};
+
+/// Variant `index` of the generated default family, written to a
+/// temporary folder that lives as long as the returned guard.
+pub(crate) fn default_variant(index: usize) -> (tempfile::TempDir, std::path::PathBuf) {
+    use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+    let folder = tempfile::tempdir().expect("temporary folder");
+    let path = variant(VARIANTS_DEFAULT_SEED, index)
+        .write(folder.path())
+        .expect("variant written");
+    (folder, path)
+}
+
+/// The context of [`default_variant`] `index` at the default settings.
+pub(crate) fn default_variant_context(index: usize) -> SceneContext {
+    let (_folder, path) = default_variant(index);
+    let scene = relight_scene::load_scene(&path).expect("variant loads");
+    SceneContext::new(scene, ContextSettings::default()).expect("context")
+}
