@@ -336,14 +336,12 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// floor's diagonal ends at a wall too, and so does an object's foot.
 pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
     use rayon::prelude::*;
-    let texel = atlas.metres_per_texel;
-    if texel.is_nan() || texel <= 0.0 {
+    let detail_texel = atlas.metres_per_texel;
+    if detail_texel.is_nan() || detail_texel <= 0.0 {
         return;
     }
     let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
-    let reach = texel * std::f32::consts::FRAC_1_SQRT_2;
-    let lift = (texel * 1e-3).max(epsilon);
-    let margin = (texel * 0.05).max(4.0 * epsilon);
+    let triangle_texel_scales = &atlas.triangle_texel_scales;
     let triangle_uvs = &atlas.triangle_uvs;
     let receivers = &mut atlas.receivers;
     receivers
@@ -354,6 +352,16 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
         .for_each(|((position, &normal), (&triangle, &[x, y]))| {
             let corners = scene.mesh.vertices(triangle as usize);
             let uvs = &triangle_uvs[triangle as usize];
+            // The receiver's own texel edge: finer near a light, coarser
+            // outside the detail region.
+            let texel = detail_texel
+                * triangle_texel_scales
+                    .get(triangle as usize)
+                    .copied()
+                    .unwrap_or(1.0);
+            let reach = texel * std::f32::consts::FRAC_1_SQRT_2;
+            let lift = (texel * 1e-3).max(epsilon);
+            let margin = (texel * 0.05).max(4.0 * epsilon);
             let in_texel = |point: Vec3| {
                 let uv = planar_uv(corners, uvs, point);
                 let inside = |value: f32, low: u32| {
@@ -362,8 +370,12 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 inside(uv.x, x) && inside(uv.y, y)
             };
             // Whether the surface at `point` belongs to another chart: its
-            // lookups read texels far from this one (charts lie at least
-            // two gutters apart), never this texel. A point on no surface
+            // UVs there are far from where this chart's planar map puts
+            // the point (charts lie at least two gutters apart), so its
+            // lookups never read this texel. Measured in atlas texels at
+            // the point itself, not from this texel's centre, so a chart's
+            // finer texels near a light and a receiver clamped away from
+            // its texel's centre do not read as far. A point on no surface
             // facing this way (a ray along a triangle's edge can miss it;
             // a box's bottom lies on the floor) counts as this chart's.
             let on_another_chart = |point: Vec3| {
@@ -378,8 +390,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         return false;
                     }
                     let uv = planar_uv(scene.mesh.vertices(surface), &triangle_uvs[surface], point);
-                    let far = |value: f32, low: u32| (value - (low as f32 + 0.5)).abs() > 2.0;
-                    far(uv.x, x) || far(uv.y, y)
+                    (uv - planar_uv(corners, uvs, point)).abs().max_element() > 2.0
                 })
             };
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
@@ -710,6 +721,46 @@ mod tests {
         assert!(
             outside == 0 && below == 0,
             "{outside} ceiling receivers outside the walls, {below} objects' below the floor"
+        );
+    }
+
+    /// Relocation measures in each receiver's own texels: on the walls
+    /// beside variant 15's corner lamp those are about a third of the
+    /// room's. A step crosses one wall within reach (half the texel's
+    /// diagonal, 0.71 edges) and lands at most a quarter edge past it; a
+    /// corner's second wall is crossed at a right angle, so a receiver
+    /// moves at most sqrt(2) * 0.96 = 1.35 of its texel edges. Measured
+    /// in the room's texels, receivers on the fine walls moved 1.7 of
+    /// theirs.
+    #[test]
+    fn receivers_move_within_their_own_texels() {
+        let (_folder, path) = default_variant(15);
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
+        let mut atlas = chart_atlas(&scene, &bvh, TexelDensity::default()).expect("atlas");
+        assert!(atlas.near_light_charts > 0, "the lamp's walls are refined");
+        let before = atlas.receivers.positions.clone();
+        relocate_receivers(&scene, &bvh, &mut atlas);
+        let receivers = &atlas.receivers;
+        let (mut farthest, mut moved_fine) = (0.0f32, 0);
+        for ((&triangle, &after), &start) in receivers
+            .triangles
+            .iter()
+            .zip(&receivers.positions)
+            .zip(&before)
+        {
+            let scale = atlas.triangle_texel_scales[triangle as usize];
+            let moved = after.distance(start);
+            farthest = farthest.max(moved / (atlas.metres_per_texel * scale));
+            moved_fine += usize::from(moved > 0.0 && scale < 1.0);
+        }
+        assert!(
+            moved_fine > 0,
+            "the fine walls' receivers by the corner move"
+        );
+        assert!(
+            farthest < 1.4,
+            "a receiver moved {farthest} of its texel edges"
         );
     }
 
