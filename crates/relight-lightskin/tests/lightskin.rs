@@ -826,7 +826,7 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
             moving_mesh_poses: None,
         })
         .unwrap();
-    let errors = indirect_errors(&context, &lights, technique.as_ref(), settings, 1024, 4096);
+    let errors = indirect_errors(&context, technique.as_ref(), settings, 1024, 4096);
     (
         errors.lightmap,
         errors.lightmap_noise,

@@ -459,11 +459,9 @@ fn chroma_grid_and_glossy_lookups() {
 fn accuracy_against_the_path_tracer() {
     for scene in ["cornell-box", "cornell-box-point", "corridor"] {
         let context = context_with(scene, true);
-        let lights = context.scene.lights.clone();
         let technique = pic(&context, &[("preset", "high")]);
         let errors = indirect_errors(
             &context,
-            &lights,
             technique.as_ref(),
             PathSettings::default(),
             2048,

@@ -139,7 +139,13 @@ impl ReferenceSet {
         progress: &dyn Progress,
     ) -> Self {
         let key = Self::key(context, settings, samples, spp);
-        let file = cache.map(|folder| folder.join(format!("relight-reference-{key:016x}.f32")));
+        // A set without points in space is another file, so a study's set
+        // and a test's never overwrite each other under one key.
+        let name = match space_points.positions.len() {
+            0 => format!("relight-reference-{key:016x}-no-space.f32"),
+            _ => format!("relight-reference-{key:016x}.f32"),
+        };
+        let file = cache.map(|folder| folder.join(name));
         let receivers = context.atlas.receivers.len();
         let [width, height] = context.scene.camera.resolution;
         let pixels = (width * height) as usize;

@@ -284,33 +284,51 @@ pub struct IndirectErrors {
     pub image_noise: f64,
 }
 
-/// `technique`, already updated under `lights`, against path tracing with
-/// `settings`: `reference_samples` paths per receiver and `reference_spp`
-/// per pixel of the context's camera.
+/// `technique`, already updated under the scene's lights, against path
+/// tracing with `settings`: `reference_samples` paths per receiver and
+/// `reference_spp` per pixel of the context's camera. The references cost
+/// far more than the technique, and tests measure several settings on one
+/// scene, and several techniques' test binaries the same scene: each is
+/// traced once per process and kept in
+/// [`crate::convergence::TEST_REFERENCE_FOLDER`] where that is set.
 pub fn indirect_errors(
     context: &SceneContext,
-    lights: &[relight_scene::Light],
     technique: &dyn relight_technique::Technique,
     settings: PathSettings,
     reference_samples: u32,
     reference_spp: u32,
 ) -> IndirectErrors {
+    use crate::convergence::{ReferenceSet, SpacePoints, TEST_REFERENCE_FOLDER};
     use crate::metrics::{error_norms, relative_noise};
-    use crate::render::{render_reference, render_with_technique};
-    let reference =
-        reference_receiver_irradiance(context, lights, settings, reference_samples, &NoProgress);
+    use crate::render::render_with_technique;
+    static REFERENCES: relight_technique::robustness::OncePerProcess<u64, ReferenceSet> =
+        relight_technique::robustness::OncePerProcess::new();
+    let key = ReferenceSet::key(context, settings, reference_samples, reference_spp);
+    let reference = REFERENCES.get_or_compute(key, || {
+        let folder = std::env::var_os(TEST_REFERENCE_FOLDER).map(std::path::PathBuf::from);
+        let no_points = SpacePoints {
+            positions: Vec::new(),
+            normals: Vec::new(),
+        };
+        ReferenceSet::cached(
+            context,
+            &no_points,
+            settings,
+            reference_samples,
+            reference_spp,
+            folder.as_deref(),
+            &NoProgress,
+        )
+    });
     let receivers = technique
         .receiver_irradiance()
         .expect("the technique keeps a lightmap");
-    let reference_image = render_reference(context, lights, settings, reference_spp, &NoProgress);
+    let lights = &context.scene.lights;
     let image = render_with_technique(context, lights, technique, 4, 1, &NoProgress);
     IndirectErrors {
-        lightmap: error_norms(receivers, &reference.mean).relative_rmse,
-        lightmap_noise: relative_noise(&reference.mean, &reference.standard_error),
-        image: error_norms(&image.indirect.pixels, &reference_image.indirect.pixels).relative_rmse,
-        image_noise: relative_noise(
-            &reference_image.indirect.pixels,
-            &reference_image.indirect_standard_error.pixels,
-        ),
+        lightmap: error_norms(receivers, &reference.lightmap).relative_rmse,
+        lightmap_noise: relative_noise(&reference.lightmap, &reference.lightmap_error),
+        image: error_norms(&image.indirect.pixels, &reference.image.pixels).relative_rmse,
+        image_noise: relative_noise(&reference.image.pixels, &reference.image_error.pixels),
     }
 }

@@ -474,11 +474,9 @@ fn accuracy(scene_name: &str, params: &[(&str, &str)]) -> (f64, f64, f64, f64) {
         )
         .unwrap(),
     );
-    let lights = context.scene.lights.clone();
     let technique = srp(&context, params);
     let errors = indirect_errors(
         &context,
-        &lights,
         technique.as_ref(),
         PathSettings::default(),
         2048,
