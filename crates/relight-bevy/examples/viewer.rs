@@ -1,7 +1,7 @@
 //! An interactive window on a relight scene: Bevy draws it with shadow
 //! maps, relight adds indirect light as the lights move.
 //!
-//! cargo run --release -p relight-bevy --example viewer -- SCENE.toml \
+//! cargo run --release -p relight-bevy --features viewer --example viewer -- SCENE.toml \
 //!     [--technique T] [--bake F] [--adopt]
 //!
 //! With --adopt, Bevy's glTF loader loads the scene's glTF (the file, or
