@@ -46,7 +46,7 @@ pub struct ReferenceSet {
 /// Points in space where dynamic objects could stand: a grid over the
 /// scene's bounds (inset by half a cell), those inside geometry left out,
 /// each with the six axis normals.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct SpacePoints {
     pub positions: Vec<glam::Vec3>,
     pub normals: Vec<glam::Vec3>,

@@ -306,10 +306,7 @@ pub fn indirect_errors(
     let key = ReferenceSet::key(context, settings, reference_samples, reference_spp);
     let reference = REFERENCES.get_or_compute(key, || {
         let folder = std::env::var_os(TEST_REFERENCE_FOLDER).map(std::path::PathBuf::from);
-        let no_points = SpacePoints {
-            positions: Vec::new(),
-            normals: Vec::new(),
-        };
+        let no_points = SpacePoints::default();
         ReferenceSet::cached(
             context,
             &no_points,

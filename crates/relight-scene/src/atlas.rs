@@ -175,9 +175,22 @@ impl Atlas {
     /// what a sum over receivers weights each by to sum over the surface
     /// (exactly 1 where texels are uniform, and for the mesh's own UVs).
     pub fn texel_area_weight(&self, triangle: u32) -> f32 {
+        self.texel_scale(triangle) * self.texel_scale(triangle)
+    }
+
+    /// The edge of a texel on `triangle` over a detail-region texel's:
+    /// below 1 on charts refined near a light, above it outside the detail
+    /// region, 1 for the mesh's own UVs.
+    pub fn texel_scale(&self, triangle: u32) -> f32 {
         self.triangle_texel_scales
             .get(triangle as usize)
-            .map_or(1.0, |scale| scale * scale)
+            .copied()
+            .unwrap_or(1.0)
+    }
+
+    /// The edge (m) of a texel on `triangle`.
+    pub fn texel_edge(&self, triangle: u32) -> f32 {
+        self.metres_per_texel * self.texel_scale(triangle)
     }
 
     /// The surface (m^2) a receiver on `triangle` stands for: its texel's

@@ -341,9 +341,11 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
         return;
     }
     let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
-    let triangle_texel_scales = &atlas.triangle_texel_scales;
-    let triangle_uvs = &atlas.triangle_uvs;
-    let receivers = &mut atlas.receivers;
+    // Out of the atlas while they move, so its per-triangle lookups stay
+    // readable beside them.
+    let mut receivers = std::mem::take(&mut atlas.receivers);
+    let atlas_ref = &*atlas;
+    let triangle_uvs = &atlas_ref.triangle_uvs;
     receivers
         .positions
         .par_iter_mut()
@@ -354,11 +356,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
             let uvs = &triangle_uvs[triangle as usize];
             // The receiver's own texel edge: finer near a light, coarser
             // outside the detail region.
-            let texel = detail_texel
-                * triangle_texel_scales
-                    .get(triangle as usize)
-                    .copied()
-                    .unwrap_or(1.0);
+            let texel = atlas_ref.texel_edge(triangle);
             let reach = texel * std::f32::consts::FRAC_1_SQRT_2;
             let lift = (texel * 1e-3).max(epsilon);
             let margin = (texel * 0.05).max(4.0 * epsilon);
@@ -501,6 +499,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 }
             }
         });
+    atlas.receivers = receivers;
 }
 
 /// See [`SceneContext::is_inside_geometry`].
@@ -749,10 +748,9 @@ mod tests {
             .zip(&receivers.positions)
             .zip(&before)
         {
-            let scale = atlas.triangle_texel_scales[triangle as usize];
             let moved = after.distance(start);
-            farthest = farthest.max(moved / (atlas.metres_per_texel * scale));
-            moved_fine += usize::from(moved > 0.0 && scale < 1.0);
+            farthest = farthest.max(moved / atlas.texel_edge(triangle));
+            moved_fine += usize::from(moved > 0.0 && atlas.texel_scale(triangle) < 1.0);
         }
         assert!(
             moved_fine > 0,

@@ -1074,21 +1074,17 @@ fn disc_frame(centre: Vec3, normal: Vec3) -> impl Fn(Vec3) -> Vec2 {
 /// texel edge: at two, where the points read a spot light's patch on the
 /// floor (variant 88), the unlit room's light moved by 5 % with the
 /// points' pattern.
-fn near_light_discs(
-    context: &SceneContext,
-    scale_of: &(impl Fn(usize) -> f32 + Sync),
-) -> Vec<HotDisc> {
+fn near_light_discs(context: &SceneContext) -> Vec<HotDisc> {
     let lights = scene_file_light_positions(context);
     let mesh = &context.scene.mesh;
     if lights.is_empty() {
         return Vec::new();
     }
-    let metres_per_texel = context.atlas.metres_per_texel;
     (0..mesh.triangles.len())
         .into_par_iter()
         .filter(|&triangle| !context.atlas.in_small_near_light_chart(triangle as u32))
         .flat_map_iter(|triangle| {
-            let texel = metres_per_texel * scale_of(triangle);
+            let texel = context.atlas.texel_edge(triangle as u32);
             let reach = NEAR_LIGHT_DISTANCE_PER_TEXEL * texel;
             let normal = mesh.geometric_normal(triangle);
             let corners = mesh.vertices(triangle);
@@ -1169,19 +1165,12 @@ impl HotSurfaces {
         let atlas = &context.atlas;
         let mesh = &context.scene.mesh;
         let triangle_count = mesh.triangles.len();
-        let scale_of = |triangle: usize| {
-            atlas
-                .triangle_texel_scales
-                .get(triangle)
-                .copied()
-                .unwrap_or(1.0)
-        };
         // A sample a texel, stratified over each triangle.
         let wanted: Vec<(usize, f32, usize)> = (0..triangle_count)
             .filter(|&triangle| atlas.in_small_near_light_chart(triangle as u32))
             .filter_map(|triangle| {
                 let area = mesh.area(triangle);
-                let texel = atlas.metres_per_texel * scale_of(triangle);
+                let texel = atlas.texel_edge(triangle as u32);
                 let texels = area / (texel * texel);
                 // NaN and degenerate triangles stay with the rays.
                 (texels > 0.0 && texels.is_finite()).then(|| {
@@ -1190,7 +1179,7 @@ impl HotSurfaces {
                 })
             })
             .collect();
-        let discs = near_light_discs(context, &scale_of);
+        let discs = near_light_discs(context);
         // A disc's count is of its plane's spiral, which the plane's
         // triangles share: what each costs is the points it keeps.
         let total: usize = wanted.iter().map(|&(_, _, count)| count).sum::<usize>()
@@ -2139,8 +2128,7 @@ mod tests {
             let normal = mesh.geometric_normal(sample.triangle as usize);
             let offset = normal.dot(mesh.vertices(sample.triangle as usize)[0]);
             let key = [normal.x, normal.y, normal.z, offset].map(|v| (v * 1e3).round() as i64);
-            let texel = context.atlas.metres_per_texel
-                * context.atlas.triangle_texel_scales[sample.triangle as usize];
+            let texel = context.atlas.texel_edge(sample.triangle);
             planes.entry(key).or_insert((0.0, texel)).0 += sample.area;
         }
         assert!(!planes.is_empty());
