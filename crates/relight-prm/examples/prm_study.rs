@@ -2,7 +2,7 @@
 //! since it costs far more than the bakes), then the lightmap relRMSE of
 //! PRM for each parameter set given on the command line.
 //!
-//! Run: `cargo run --release -p relight-prm --example study -- SCENE.toml
+//! Run: `cargo run --release -p relight-prm --example prm_study -- SCENE.toml
 //! RESOLUTION REFERENCE_SAMPLES "clusters=256,top_k=0" "top_k=32" ...`
 //! (RESOLUTION 0 = the automatic lightmap size).
 

@@ -4,7 +4,7 @@
 //! `SRP_WORST=1` also the worst receivers next to one exact gather step
 //! from the reference's light (what unlimited probes would give).
 //!
-//! Run: `cargo run --release -p relight-srp --example study -- SCENE.toml
+//! Run: `cargo run --release -p relight-srp --example srp_study -- SCENE.toml
 //! RESOLUTION REFERENCE_SAMPLES "order=7" "order=2" "probe_count=64" ...`
 //! (RESOLUTION 0 = the automatic lightmap size).
 
