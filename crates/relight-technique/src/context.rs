@@ -336,8 +336,7 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// floor's diagonal ends at a wall too, and so does an object's foot.
 pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
     use rayon::prelude::*;
-    let detail_texel = atlas.metres_per_texel;
-    if detail_texel.is_nan() || detail_texel <= 0.0 {
+    if atlas.metres_per_texel.is_nan() || atlas.metres_per_texel <= 0.0 {
         return;
     }
     let epsilon = relight_trace::direct::ray_epsilon_for(bvh);
