@@ -17,7 +17,7 @@ use anyhow::{bail, Context, Result};
 use relight_render::convergence::{Measurement, Split, TILE};
 use relight_render::metrics::tile_ratio_image;
 use relight_render::robustness::{
-    bound, distribution, ContactError, VariantCase, UNLIT_LIGHT_RATIO,
+    bound, distribution, ContactError, VariantCase, CONTACT_HALO, UNLIT_LIGHT_RATIO,
 };
 use relight_scene::generate::variants::{variant, VariantKind, VARIANTS_DEFAULT_SEED};
 use relight_technique::ContextSettings;
@@ -85,6 +85,17 @@ impl Row {
     fn resolved(&self) -> bool {
         self.bound
             .is_none_or(|bound| self.reference_tile_noise <= bound * RESOLVING_NOISE)
+    }
+
+    /// Whether the reference's tiles at objects' feet are precise enough
+    /// to tell a halo there from the reference's own noise. The halo
+    /// threshold follows the image's error, so the image must be resolved
+    /// too: against a noisy reference that error is mostly noise.
+    fn contact_resolved(&self) -> bool {
+        self.resolved()
+            && self
+                .contact
+                .resolved(self.measurement.image_tiles, RESOLVING_NOISE)
     }
 
     /// Tile error over the bound: over 1 fails.
@@ -167,7 +178,12 @@ pub fn run(
             settings.measure.spp,
             &bars,
         );
-        let contact = ContactError::of(&image, &reference.image, &case.contact_tiles);
+        let contact = ContactError::of(
+            &image,
+            &reference.image,
+            &reference.tile_standard_errors(),
+            &case.contact_tiles,
+        );
         let row = Row {
             name: name.clone(),
             kind: case.variant.kind,
@@ -253,16 +269,16 @@ fn report(
         "Reference: {} paths per pixel, {} per receiver and point in space; images 1/{} of 320x240.\n",
         settings.measure.reference_spp, settings.measure.reference_samples, settings.shrink
     )?;
-    writeln!(out, "| variant | triangles | receivers | image 8x8 tiles | bound | reference tile noise | visible lightmap | light in view | contact tiles | contact light | points in space | bake s | update ms |")?;
+    writeln!(out, "| variant | triangles | receivers | image 8x8 tiles | bound | reference tile noise | visible lightmap | light in view | contact tiles | contact light | contact reference noise | points in space | bake s | update ms |")?;
     writeln!(
         out,
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     )?;
     for row in rows {
         let m = &row.measurement;
         writeln!(
             out,
-            "| {} | {} | {} | {} | {} | {} | {} | {:.3}x | {} | {:.3}x | {} | {:.1} | {:.1} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {:.3}x | {} | {:.3}x | {} | {} | {:.1} | {:.1} |",
             row.name,
             row.triangles,
             row.receivers,
@@ -273,6 +289,7 @@ fn report(
             m.light_ratio,
             percent(row.contact.relative_rmse),
             row.contact.light_ratio,
+            percent(row.contact.reference_noise),
             percent(m.space),
             row.bake_seconds,
             row.update_ms
@@ -283,7 +300,7 @@ fn report(
         "\nPer kind, over the variants whose reference resolves the bound (its 8x8-tile noise at most {:.0} % of it; raise --reference-spp for the rest):",
         RESOLVING_NOISE * 100.0
     )?;
-    writeln!(out, "\n| kind | variants resolved | tiles: median | 90th percentile | worst | bound | over bound | worst over 1.5x bound | contact / image tiles: median, worst | unlit rooms' light in view |")?;
+    writeln!(out, "\n| kind | variants resolved | tiles: median | 90th percentile | worst | bound | over bound | worst over 1.5x bound | contact / image tiles: median, worst; halos over {CONTACT_HALO}x where the reference resolves them | unlit rooms' light in view |")?;
     writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")?;
     for kind in VariantKind::ALL {
         let all_of_kind = rows.iter().filter(|row| row.kind == kind).count();
@@ -309,6 +326,14 @@ fn report(
             .iter()
             .map(|row| row.contact.relative_rmse / row.measurement.image_tiles)
             .collect();
+        let contact_resolved: Vec<&&Row> = of_kind
+            .iter()
+            .filter(|row| row.contact_resolved())
+            .collect();
+        let halos = contact_resolved
+            .iter()
+            .filter(|row| row.contact.is_halo(row.measurement.image_tiles))
+            .count();
         let bound = of_kind[0].bound;
         let over = |factor: f64| {
             bound.map_or("-".to_string(), |bound| {
@@ -336,9 +361,12 @@ fn report(
             format!("{low:.2}-{high:.2}x, {outside} outside 0.85-1.15x")
         };
         let (median, p90, worst) = distribution(&tiles).unwrap_or((f64::NAN, f64::NAN, f64::NAN));
-        let contact = distribution(&contact_over_image)
-            .map_or("-".to_string(), |(median, _, worst)| {
-                format!("{median:.2}x, {worst:.2}x")
+        let contact =
+            distribution(&contact_over_image).map_or("-".to_string(), |(median, _, worst)| {
+                format!(
+                    "{median:.2}x, {worst:.2}x; {halos} of {} resolved",
+                    contact_resolved.len()
+                )
             });
         writeln!(
             out,
@@ -394,6 +422,8 @@ fn json(technique: &str, settings: &RobustnessSettings, rows: &[Row]) -> serde_j
                 "contact_tiles": row.contact.tiles,
                 "contact_relative_rmse": json_number(row.contact.relative_rmse),
                 "contact_light_ratio": json_number(row.contact.light_ratio),
+                "contact_reference_noise": json_number(row.contact.reference_noise),
+                "contact_resolved": row.contact_resolved(),
             })
         }).collect::<Vec<_>>(),
     })

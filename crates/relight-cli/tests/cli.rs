@@ -693,6 +693,8 @@ fn gen_variants_writes_scenes_that_robustness_measures() {
     assert!(rows[0]["image_tiles"].as_f64().is_some_and(f64::is_finite));
     // Four paths a pixel cannot resolve a bound.
     assert_eq!(rows[0]["reference_resolves_bound"], false);
+    // Nor the few tiles at objects' feet, if any are in view.
+    assert_eq!(rows[0]["contact_resolved"], false);
     assert!(folder.path().join("images/000-room-reference.png").exists());
     let error = run_err(relight().args(["robustness", "-q", "-t", "reference", "--variants", "1"]));
     assert!(error.contains("name another technique"), "{error}");

@@ -230,6 +230,25 @@ impl ReferenceSet {
         set
     }
 
+    /// The standard error of each 8x8 tile mean of the reference image
+    /// (row-major, as [`tile_means`] orders them): the root sum of its
+    /// pixels' squared errors over the pixel count, the pixels being
+    /// independent estimates.
+    pub fn tile_standard_errors(&self) -> Vec<Rgb> {
+        let squared = Image {
+            width: self.image_error.width,
+            height: self.image_error.height,
+            pixels: self.image_error.pixels.iter().map(|e| *e * *e).collect(),
+        };
+        let pixels_per_tile = (TILE * TILE) as f32;
+        tile_means(&squared, TILE)
+            .into_iter()
+            .map(|mean| {
+                Rgb::new(mean.x.sqrt(), mean.y.sqrt(), mean.z.sqrt()) / pixels_per_tile.sqrt()
+            })
+            .collect()
+    }
+
     /// The reference's own relative noise: over all receivers, over those
     /// `visible` selects, per pixel and over tile means.
     pub fn noise(&self, visible: &[bool]) -> Noise {
@@ -240,22 +259,7 @@ impl ReferenceSet {
                 .map(|(value, _)| *value)
                 .collect()
         };
-        // A tile mean's standard error is the root sum of its pixels'
-        // squared errors over the pixel count (independent pixels).
-        let tile_error = {
-            let squared = Image {
-                width: self.image_error.width,
-                height: self.image_error.height,
-                pixels: self.image_error.pixels.iter().map(|e| *e * *e).collect(),
-            };
-            let pixels_per_tile = (TILE * TILE) as f32;
-            tile_means(&squared, TILE)
-                .into_iter()
-                .map(|mean| {
-                    Rgb::new(mean.x.sqrt(), mean.y.sqrt(), mean.z.sqrt()) / pixels_per_tile.sqrt()
-                })
-                .collect::<Vec<_>>()
-        };
+        let tile_error = self.tile_standard_errors();
         Noise {
             lightmap: relative_noise(&self.lightmap, &self.lightmap_error),
             visible_lightmap: relative_noise(&pick(&self.lightmap), &pick(&self.lightmap_error)),

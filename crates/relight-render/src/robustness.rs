@@ -13,8 +13,9 @@
 
 use crate::convergence::{shrink_camera, Measurement, Noise, TILE};
 use crate::image::Image;
-use crate::metrics::{subset_error, tile_means};
+use crate::metrics::{relative_noise, subset_error, tile_means};
 use glam::Vec3;
+use relight_core::Rgb;
 use relight_scene::generate::variants::{Foot, Variant, VariantKind};
 use relight_scene::SceneError;
 use relight_technique::{ContextSettings, SceneContext, Technique};
@@ -182,25 +183,66 @@ pub struct ContactError {
     pub relative_rmse: f64,
     /// Their light against the reference's: a dark halo is under 1.
     pub light_ratio: f64,
+    /// The reference's own relative noise over those tile means: a perfect
+    /// technique would still show about this much contact error. Feet are
+    /// often small, far or in the dark, where a few tiles of a 256-path
+    /// reference are mostly noise.
+    pub reference_noise: f64,
 }
 
+/// The contact target: the tiles at objects' feet within this
+/// factor of the whole image's tile error; over it is a halo.
+pub const CONTACT_HALO: f64 = 1.5;
+
 impl ContactError {
-    pub fn of(image: &Image, reference: &Image, contact_tiles: &[bool]) -> Self {
+    /// `reference_tile_errors` are the standard errors of `reference`'s
+    /// tile means ([`crate::convergence::ReferenceSet::tile_standard_errors`]).
+    pub fn of(
+        image: &Image,
+        reference: &Image,
+        reference_tile_errors: &[Rgb],
+        contact_tiles: &[bool],
+    ) -> Self {
         let values = tile_means(image, TILE);
         let truth = tile_means(reference, TILE);
-        if values.len() != contact_tiles.len() || !contact_tiles.iter().any(|&near| near) {
+        if values.len() != contact_tiles.len()
+            || reference_tile_errors.len() != contact_tiles.len()
+            || !contact_tiles.iter().any(|&near| near)
+        {
             return Self {
                 tiles: 0,
                 relative_rmse: f64::NAN,
                 light_ratio: f64::NAN,
+                reference_noise: f64::NAN,
             };
         }
         let part = subset_error(&values, &truth, |i| contact_tiles[i]);
+        let pick = |list: &[Rgb]| -> Vec<Rgb> {
+            list.iter()
+                .zip(contact_tiles)
+                .filter(|(_, &near)| near)
+                .map(|(value, _)| *value)
+                .collect()
+        };
         Self {
             tiles: part.count,
             relative_rmse: part.relative_rmse,
             light_ratio: part.light_ratio,
+            reference_noise: relative_noise(&pick(&truth), &pick(reference_tile_errors)),
         }
+    }
+
+    /// Whether the reference is precise enough at the feet to tell a halo
+    /// from its own noise: noise at most `resolving_share` of the halo
+    /// threshold (`CONTACT_HALO` times `image_tiles`), as the study asks of
+    /// a whole image against its bound.
+    pub fn resolved(&self, image_tiles: f64, resolving_share: f64) -> bool {
+        self.tiles > 0 && self.reference_noise <= CONTACT_HALO * image_tiles * resolving_share
+    }
+
+    /// Over the halo threshold.
+    pub fn is_halo(&self, image_tiles: f64) -> bool {
+        self.relative_rmse > CONTACT_HALO * image_tiles
     }
 }
 
@@ -246,6 +288,37 @@ mod tests {
         assert_eq!(distribution(&values), Some((5.0, 9.0, 10.0)));
         assert_eq!(distribution(&[3.0]), Some((3.0, 3.0, 3.0)));
         assert_eq!(distribution(&[f64::NAN]), None);
+    }
+
+    #[test]
+    fn contact_error_reads_the_reference_noise_of_its_tiles() {
+        let flat = |value: f32| Image {
+            width: 16,
+            height: 8,
+            pixels: vec![Rgb::splat(value); 128],
+        };
+        let mut image = flat(1.0);
+        for y in 0..8 {
+            for x in 0..8 {
+                image.pixels[y * 16 + x] = Rgb::splat(1.2);
+            }
+        }
+        // Each pixel's standard error 0.8 gives each 64-pixel tile mean
+        // 0.8 / 8 = 0.1, a tenth of the reference's light.
+        let reference = flat(1.0);
+        let errors = vec![Rgb::splat(0.1); 2];
+        let contact = ContactError::of(&image, &reference, &errors, &[true, false]);
+        assert_eq!(contact.tiles, 1);
+        assert!((contact.relative_rmse - 0.2).abs() < 1e-6);
+        assert!((contact.light_ratio - 1.2).abs() < 1e-6);
+        assert!((contact.reference_noise - 0.1).abs() < 1e-6);
+        // Threshold 1.5 x 0.1 = 0.15: 0.2 is a halo; noise 0.1 resolves it
+        // at half the threshold only when the image error is at least 0.134.
+        assert!(contact.is_halo(0.1));
+        assert!(!contact.resolved(0.1, 0.5));
+        assert!(contact.resolved(0.14, 0.5));
+        let none = ContactError::of(&image, &reference, &errors, &[false, false]);
+        assert!(!none.resolved(0.1, 0.5) && none.relative_rmse.is_nan());
     }
 
     #[test]
