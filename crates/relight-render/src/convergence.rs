@@ -12,7 +12,7 @@
 
 use crate::image::Image;
 use crate::metrics::{
-    error_norms, light_ratio, relative_noise, subset_error, tile_means, SubsetError,
+    error_norms, kept, light_ratio, relative_noise, subset_error, tile_means, SubsetError,
 };
 use crate::render::{render_reference, render_with_technique};
 use rayon::prelude::*;
@@ -252,13 +252,7 @@ impl ReferenceSet {
     /// The reference's own relative noise: over all receivers, over those
     /// `visible` selects, per pixel and over tile means.
     pub fn noise(&self, visible: &[bool]) -> Noise {
-        let pick = |list: &[Rgb]| -> Vec<Rgb> {
-            list.iter()
-                .zip(visible)
-                .filter(|(_, &seen)| seen)
-                .map(|(value, _)| *value)
-                .collect()
-        };
+        let pick = |list: &[Rgb]| kept(list, visible);
         let tile_error = self.tile_standard_errors();
         Noise {
             lightmap: relative_noise(&self.lightmap, &self.lightmap_error),

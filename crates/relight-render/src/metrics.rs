@@ -156,6 +156,16 @@ pub fn subset_error(
     }
 }
 
+/// The values whose flag in `keep` is set, in order.
+pub fn kept(values: &[Rgb], keep: &[bool]) -> Vec<Rgb> {
+    values
+        .iter()
+        .zip(keep)
+        .filter(|(_, &kept)| kept)
+        .map(|(value, _)| *value)
+        .collect()
+}
+
 /// Relative noise of a Monte Carlo estimate: the L2 norm of its per-element
 /// standard errors over the L2 norm of the estimate. A perfect technique
 /// compared against this reference would still show about this relRMSE.

@@ -13,7 +13,7 @@
 
 use crate::convergence::{shrink_camera, Measurement, Noise, TILE};
 use crate::image::Image;
-use crate::metrics::{relative_noise, subset_error, tile_means};
+use crate::metrics::{kept, relative_noise, subset_error, tile_means};
 use glam::Vec3;
 use relight_core::Rgb;
 use relight_scene::generate::variants::{Foot, Variant, VariantKind};
@@ -217,18 +217,14 @@ impl ContactError {
             };
         }
         let part = subset_error(&values, &truth, |i| contact_tiles[i]);
-        let pick = |list: &[Rgb]| -> Vec<Rgb> {
-            list.iter()
-                .zip(contact_tiles)
-                .filter(|(_, &near)| near)
-                .map(|(value, _)| *value)
-                .collect()
-        };
         Self {
             tiles: part.count,
             relative_rmse: part.relative_rmse,
             light_ratio: part.light_ratio,
-            reference_noise: relative_noise(&pick(&truth), &pick(reference_tile_errors)),
+            reference_noise: relative_noise(
+                &kept(&truth, contact_tiles),
+                &kept(reference_tile_errors, contact_tiles),
+            ),
         }
     }
 

@@ -323,9 +323,11 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// past the nearest one whose far side is not another chart's surface,
 /// into the middle of what is left of the texel, staying in its own plane.
 /// A receiver that sits on the line where another surface meets its own
-/// moves a quarter texel away from it, for the same reason. Receivers a
-/// surface covers entirely stay where they are: nothing of them is
-/// visible. A receiver inside a slab (a wall's back on both sides of it)
+/// moves a quarter texel away from it, for the same reason. A receiver
+/// under an object that stands just above its surface with no bottom
+/// (rays in the plane pass under the object's walls) moves to the part of
+/// its texel outside the object. Receivers a surface covers entirely stay
+/// where they are: nothing of them is visible. A receiver inside a slab (a wall's back on both sides of it)
 /// moves only within its own texel, so a texel that a partition covers is
 /// never given either room's light; [`fill_hidden_texels`] decides what it
 /// shows. Beyond two rooms' coincident walls (each room its own box) is the
@@ -390,7 +392,70 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     (uv - planar_uv(corners, uvs, point)).abs().max_element() > 2.0
                 })
             };
+            // Under something whose back faces this way: the inside of an
+            // object standing on this surface.
+            let under_cover = |point: Vec3| {
+                bvh.intersect(&Ray {
+                    origin: point + normal * lift,
+                    direction: normal,
+                    t_max: f32::INFINITY,
+                })
+                .is_some_and(|hit| {
+                    scene
+                        .mesh
+                        .geometric_normal(hit.triangle as usize)
+                        .dot(normal)
+                        > 0.0
+                })
+            };
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
+            // The middle of the part of the texel outside the cover,
+            // along the direction in which it is nearest.
+            let out_from_under = |position: Vec3, under_cover: &dyn Fn(Vec3) -> bool| {
+                const STEPS: usize = 8;
+                let mut nearest: Option<(f32, Vec3)> = None;
+                for step in 0..8 {
+                    let angle = step as f32 * std::f32::consts::FRAC_PI_4;
+                    let direction = tangent * angle.cos() + bitangent * angle.sin();
+                    for k in 1..=STEPS {
+                        let distance = reach * k as f32 / STEPS as f32;
+                        let point = position + direction * distance;
+                        if nearest.is_some_and(|(d, _)| d <= distance) || !in_texel(point) {
+                            break;
+                        }
+                        if !under_cover(point) {
+                            nearest = Some((distance, direction));
+                            break;
+                        }
+                    }
+                }
+                let (distance, direction) = nearest?;
+                let beyond = ((0.5 * texel - distance) * 0.5).max(0.0);
+                // Only under a cover that leaves a gap: where the object's
+                // walls reach this surface (it stands on it, or in it),
+                // the receiver is inside the object, and the walls
+                // decide as for any other wall.
+                let start = position + normal * lift;
+                let reachable = |moved: Vec3| {
+                    let offset = moved + normal * lift - start;
+                    let length = offset.length();
+                    length <= epsilon
+                        || !bvh.occluded(&Ray {
+                            origin: start,
+                            direction: offset / length,
+                            t_max: length,
+                        })
+                };
+                [distance + beyond, distance]
+                    .into_iter()
+                    .map(|along| position + direction * along)
+                    .find(|&moved| {
+                        in_texel(moved)
+                            && !under_cover(moved)
+                            && reachable(moved)
+                            && !on_another_chart(moved)
+                    })
+            };
             // A corner can put a receiver behind two walls; each step
             // crosses one.
             for pass in 0..3 {
@@ -493,6 +558,18 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     // the texel's side that faces away from it.
                     *position -= direction * ((0.5 * texel - distance) * 0.5);
                     break;
+                } else if pass == 0 && walls.iter().all(Option::is_none) && under_cover(*position) {
+                    // Under an object that stands a few millimetres above
+                    // this surface with no bottom: rays in the plane pass
+                    // under its walls and meet no back. Left there, the
+                    // receiver is hidden and its texel shows the open
+                    // floor beyond ([`fill_hidden_texels`]), brighter than
+                    // the strip at the object's foot that the texel also
+                    // covers. It moves to the middle of that strip.
+                    if let Some(moved) = out_from_under(*position, &under_cover) {
+                        *position = moved;
+                    }
+                    break;
                 } else {
                     break;
                 }
@@ -546,7 +623,7 @@ fn planar_uv(corners: [Vec3; 3], uvs: &[glam::Vec2; 3], point: Vec3) -> glam::Ve
 
 /// The barycentric coordinates (of the second and third corner) of `point`
 /// projected onto the triangle's plane; `None` for a degenerate triangle.
-fn planar_barycentric(corners: [Vec3; 3], point: Vec3) -> Option<(f32, f32)> {
+pub(crate) fn planar_barycentric(corners: [Vec3; 3], point: Vec3) -> Option<(f32, f32)> {
     let (edge_b, edge_c, offset) = (
         corners[1] - corners[0],
         corners[2] - corners[0],
@@ -758,6 +835,57 @@ mod tests {
         assert!(
             farthest < 1.4,
             "a receiver moved {farthest} of its texel edges"
+        );
+    }
+
+    /// Generated variant 0 has an open-bottomed box 7 mm above a room's
+    /// floor. Rays in the floor's plane pass under its walls, so a floor
+    /// receiver whose texel centre lay under the box stayed there, hidden,
+    /// even where its texel reached past the box's foot, and its texel
+    /// showed the open floor beyond: the foot's tiles were brighter than
+    /// the path tracer's with every technique. Such receivers now stand on
+    /// the strip of their texel outside the box, within their texel.
+    #[test]
+    fn receivers_under_an_open_box_move_to_the_strip_at_its_foot() {
+        use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+        let generated = variant(VARIANTS_DEFAULT_SEED, 0);
+        let foot = generated.feet[0];
+        assert!(!foot.has_bottom, "an open-bottomed box");
+        let (_folder, path) = default_variant(0);
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        let bvh = Bvh::build(&scene.mesh.positions, &scene.mesh.triangles);
+        let mut atlas = chart_atlas(&scene, &bvh, TexelDensity::default()).expect("atlas");
+        let before = atlas.receivers.positions.clone();
+        relocate_receivers(&scene, &bvh, &mut atlas);
+        let receivers = &atlas.receivers;
+        let under = |point: Vec3| {
+            point.x > foot.low.x
+                && point.x < foot.high.x
+                && point.z > foot.low.y
+                && point.z < foot.high.y
+        };
+        let mut moved_out = 0;
+        for (index, &from) in before.iter().enumerate() {
+            let to = receivers.positions[index];
+            let on_floor = receivers.normals[index].y > 0.99 && (from.y - foot.floor).abs() < 1e-3;
+            if !on_floor || !under(from) || under(to) {
+                continue;
+            }
+            moved_out += 1;
+            let edge = atlas.texel_edge(receivers.triangles[index]);
+            assert!(
+                (to.y - from.y).abs() < 1e-5,
+                "left the floor: {from} -> {to}"
+            );
+            // Within the texel: at most half its diagonal from the centre.
+            assert!(
+                from.distance(to) < 0.71 * edge,
+                "{from} -> {to}, texel {edge} m"
+            );
+        }
+        assert!(
+            moved_out > 0,
+            "no floor receiver moved out from under the box"
         );
     }
 
