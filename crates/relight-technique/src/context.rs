@@ -327,9 +327,10 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// under an object that stands just above its surface with no bottom
 /// (rays in the plane pass under the object's walls) moves to the part of
 /// its texel outside the object. Receivers a surface covers entirely stay
-/// where they are: nothing of them is visible. A receiver inside a slab (a wall's back on both sides of it)
-/// moves only within its own texel, so a texel that a partition covers is
-/// never given either room's light; [`fill_hidden_texels`] decides what it
+/// where they are: nothing of them is visible. A receiver inside a slab
+/// (a wall's back on both sides of it) moves only within its own texel,
+/// so a texel that a partition covers is never given either room's light;
+/// [`fill_hidden_texels`] decides what it
 /// shows. Beyond two rooms' coincident walls (each room its own box) is the
 /// other room's floor, another chart (charts stop at walls standing on
 /// their edges) whose lookups never read this texel: moved there, a
@@ -411,7 +412,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
             // The middle of the part of the texel outside the cover,
             // along the direction in which it is nearest.
-            let out_from_under = |position: Vec3, under_cover: &dyn Fn(Vec3) -> bool| {
+            let out_from_under = |position: Vec3| {
                 const STEPS: usize = 8;
                 let mut nearest: Option<(f32, Vec3)> = None;
                 for step in 0..8 {
@@ -566,7 +567,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     // floor beyond ([`fill_hidden_texels`]), brighter than
                     // the strip at the object's foot that the texel also
                     // covers. It moves to the middle of that strip.
-                    if let Some(moved) = out_from_under(*position, &under_cover) {
+                    if let Some(moved) = out_from_under(*position) {
                         *position = moved;
                     }
                     break;
@@ -623,7 +624,7 @@ fn planar_uv(corners: [Vec3; 3], uvs: &[glam::Vec2; 3], point: Vec3) -> glam::Ve
 
 /// The barycentric coordinates (of the second and third corner) of `point`
 /// projected onto the triangle's plane; `None` for a degenerate triangle.
-pub(crate) fn planar_barycentric(corners: [Vec3; 3], point: Vec3) -> Option<(f32, f32)> {
+fn planar_barycentric(corners: [Vec3; 3], point: Vec3) -> Option<(f32, f32)> {
     let (edge_b, edge_c, offset) = (
         corners[1] - corners[0],
         corners[2] - corners[0],
