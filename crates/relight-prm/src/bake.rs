@@ -308,6 +308,12 @@ impl PrmPart {
             })
         };
         let entry_flux = entries.flux();
+        let levels = light_levels(
+            &entries,
+            params.clusters as usize,
+            diagonal,
+            params.irradiance_weight,
+        );
         let entry_clusters = cluster_entries(
             &entries.positions,
             &entries.normals,
@@ -315,6 +321,7 @@ impl PrmPart {
             Metric {
                 normal_weight: params.normal_weight,
                 diagonal,
+                light_levels: &levels,
             },
             params.seed,
             &entry_flux,
@@ -942,6 +949,16 @@ impl Entries {
         self.areas.push(area);
     }
 
+    /// The light falling on the surface the entries stand for, under the
+    /// scene file's lights: irradiance times area, summed (luminance).
+    fn irradiance_times_area(&self) -> f64 {
+        self.irradiance
+            .iter()
+            .zip(&self.areas)
+            .map(|(&irradiance, &area)| irradiance as f64 * area as f64)
+            .sum()
+    }
+
     /// Each entry's flux under the scene file's lights: irradiance times
     /// albedo and area (luminance).
     fn flux(&self) -> Vec<f32> {
@@ -1260,20 +1277,63 @@ fn entry_weights(scene: &Scene, atlas: &Atlas) -> Option<Vec<f32>> {
         .then_some(weights)
 }
 
+/// Each entry's light level for the clustering, `log2(1 + E / mean E)`
+/// with E its irradiance under the scene file's lights and the mean over
+/// the surface, in units of `weight` typical cluster spacings (the
+/// metric's: positions over the diagonal); empty where `weight` is 0 or
+/// the scene file lights nothing.
+///
+/// Why: a frame scales a cluster's pane, the sum of its entries' panes
+/// at unit irradiance, by their mean irradiance, which is right only where
+/// that irradiance is even over the cluster. Beside a lamp near a wall or
+/// along the edge of a patch of light through a doorway, a cluster of a
+/// room's size holds entries 10 to 100 times brighter than others, and
+/// spreads the light that the bright few send to their own neighbourhood
+/// over the whole cluster's: a glow on a wall that the reference lights
+/// only near the lamp or the doorway. With the level among the
+/// coordinates, clusters split along the steep gradients of the scene
+/// file's light and stay whole where it is dim or even. Lights moved at
+/// run time keep the bake's clusters, which are still compact in space.
+fn light_levels(entries: &Entries, clusters: usize, diagonal: f32, weight: f32) -> Vec<f32> {
+    let area: f64 = entries.areas.iter().map(|&area| area as f64).sum();
+    let lit = entries.irradiance_times_area();
+    if weight <= 0.0 || area <= 0.0 || lit <= 0.0 || clusters == 0 {
+        return Vec::new();
+    }
+    let mean = (lit / area) as f32;
+    let spacing = (area as f32 / clusters as f32).sqrt() / diagonal;
+    entries
+        .irradiance
+        .iter()
+        .map(|&irradiance| (1.0 + irradiance / mean).log2() * weight * spacing)
+        .collect()
+}
+
+/// A cluster's centre in the clustering's space: position over the
+/// diagonal, normal times its weight, light level (see [`light_levels`]).
+type Centre = (Vec3, Vec3, f32);
+
+fn squared_distance(a: &Centre, b: &Centre) -> f32 {
+    a.0.distance_squared(b.0) + a.1.distance_squared(b.1) + (a.2 - b.2) * (a.2 - b.2)
+}
+
 /// Clusters an entry may join, nearest first, before it gives up on
 /// finding one whose anchor is alike: a room's entries find a cluster of
 /// their own room among the first few.
 const ALIKE_CANDIDATES: usize = 16;
 
 /// The clustering's distance: positions in scene diagonals, normals
-/// times `normal_weight`.
+/// times `normal_weight`, and each entry's light level (see
+/// [`light_levels`]; empty: none).
 #[derive(Clone, Copy)]
-pub(crate) struct Metric {
+pub(crate) struct Metric<'a> {
     pub normal_weight: f32,
     pub diagonal: f32,
+    pub light_levels: &'a [f32],
 }
 
-/// k-means over (position / diagonal, normal * weight), seeded by k-means++
+/// k-means over (position / diagonal, normal * weight, light level; levels
+/// empty: none), seeded by k-means++
 /// (each seed drawn with probability proportional to its squared distance
 /// from the seeds so far) and a fixed number of Lloyd iterations; a cluster
 /// left empty restarts at the entry farthest from its centre. Ties go to the
@@ -1309,19 +1369,18 @@ pub(crate) fn cluster_entries(
     priority: &[f32],
     alike: impl Fn(usize, usize) -> bool + Sync,
 ) -> Vec<u32> {
+    let level = |index: usize| metric.light_levels.get(index).copied().unwrap_or(0.0);
     let feature = |index: usize| {
         (
             positions[index] / metric.diagonal,
             normals[index] * metric.normal_weight,
+            level(index),
         )
     };
-    let distance = |index: usize, centre: &(Vec3, Vec3)| {
-        let (position, normal) = feature(index);
-        position.distance_squared(centre.0) + normal.distance_squared(centre.1)
-    };
+    let distance = |index: usize, centre: &Centre| squared_distance(&feature(index), centre);
     let count = positions.len();
     let mut rng = SampleStream::new(seed, u64::MAX, 0);
-    let mut centres: Vec<(Vec3, Vec3)> = Vec::with_capacity(clusters);
+    let mut centres: Vec<Centre> = Vec::with_capacity(clusters);
     let mut anchors: Vec<usize> = Vec::with_capacity(clusters);
     let first = (rng.next_f32() as f64 * count as f64) as usize % count;
     centres.push(feature(first));
@@ -1363,7 +1422,7 @@ pub(crate) fn cluster_entries(
     let assign = |assignment: &mut [u32],
                   distances: &mut [f32],
                   unplaced: &mut [bool],
-                  centres: &[(Vec3, Vec3)],
+                  centres: &[Centre],
                   anchors: &[usize]| {
         assignment
             .par_iter_mut()
@@ -1409,18 +1468,20 @@ pub(crate) fn cluster_entries(
             &centres,
             &anchors,
         );
-        let mut sums = vec![(Vec3::ZERO, Vec3::ZERO, 0u32); clusters];
+        let mut sums = vec![(Vec3::ZERO, Vec3::ZERO, 0.0f32, 0u32); clusters];
         for (index, &cluster) in assignment.iter().enumerate() {
-            let (position, normal) = feature(index);
+            let (position, normal, level) = feature(index);
             let sum = &mut sums[cluster as usize];
             sum.0 += position;
             sum.1 += normal;
-            sum.2 += 1;
+            sum.2 += level;
+            sum.3 += 1;
         }
         let mut restarted = false;
         for ((centre, anchor), sum) in centres.iter_mut().zip(&mut anchors).zip(&sums) {
-            if sum.2 > 0 {
-                *centre = (sum.0 / sum.2 as f32, sum.1 / sum.2 as f32);
+            if sum.3 > 0 {
+                let count = sum.3 as f32;
+                *centre = (sum.0 / count, sum.1 / count, sum.2 / count);
                 *anchor = usize::MAX;
             } else {
                 // The worst-served entry becomes the empty cluster's centre.
@@ -1445,7 +1506,7 @@ pub(crate) fn cluster_entries(
         let mut anchor_distances = vec![f32::INFINITY; clusters];
         for (index, &cluster) in assignment.iter().enumerate() {
             let cluster = cluster as usize;
-            if sums[cluster].2 == 0 {
+            if sums[cluster].3 == 0 {
                 continue;
             }
             let d = distance(index, &centres[cluster]);
@@ -1497,7 +1558,7 @@ const ORPHAN_CLUSTER_SHARE: usize = 16;
 fn give_orphans_clusters(
     assignment: &mut [u32],
     anchors: &mut [usize],
-    centres: &[(Vec3, Vec3)],
+    centres: &[Centre],
     unplaced: &[bool],
     priority: &[f32],
     alike: &(impl Fn(usize, usize) -> bool + Sync),
@@ -1524,7 +1585,7 @@ fn give_orphans_clusters(
         for second in first + 1..clusters {
             if sizes[first] > 0 && sizes[second] > 0 {
                 let (a, b) = (centres[first], centres[second]);
-                let distance = a.0.distance_squared(b.0) + a.1.distance_squared(b.1);
+                let distance = squared_distance(&a, &b);
                 pairs.push((distance, first as u32, second as u32));
             }
         }
@@ -1776,6 +1837,7 @@ mod tests {
             let metric = Metric {
                 normal_weight: 0.5,
                 diagonal: 2.0,
+                light_levels: &[],
             };
             let assignment =
                 cluster_entries(&positions, &normals, clusters, metric, 7, &priority, alike);
@@ -1815,12 +1877,7 @@ mod tests {
             )
             .unwrap();
             let entries = sample_entries(&case.context, 4096).unwrap();
-            let counted: f64 = entries
-                .irradiance
-                .iter()
-                .zip(&entries.areas)
-                .map(|(&irradiance, &area)| irradiance as f64 * area as f64)
-                .sum();
+            let counted = entries.irradiance_times_area();
             let flux: f64 = case
                 .context
                 .scene

@@ -6,9 +6,10 @@
 //! density, which coarsens outside the scene's detail region and refines
 //! on small charts near lights, each entry then standing for its own area;
 //! an eighth of them kept for the surfaces that face a light of the scene
-//! file within a few entry spacings of it) and clustered by position and
-//! normal (k-means++ seeding, Lloyd iterations, an entry joining only a
-//! cluster whose anchor it sees from the front); from each entry point
+//! file within a few entry spacings of it) and clustered by position,
+//! normal and their light under the scene file's lights (k-means++
+//! seeding, Lloyd iterations, an entry joining only a cluster whose anchor
+//! it sees from the front); from each entry point
 //! quasi-random light paths (cosine directions, Russian roulette by albedo
 //! luminance, equations 1 to 3; more of them from entries that the scene
 //! file's lights make bright) leave virtual point lights, and every
@@ -39,6 +40,7 @@
 //! | `entry_area_samples` | 2 | shadow rays per entry point toward area lights each frame |
 //! | `paths_per_entry` | 4 | light paths from each entry point, times 1 to 16 by its flux under the scene file's lights |
 //! | `normal_weight` | 0.5 | weight of the normal against position (in scene diagonals) in clustering |
+//! | `irradiance_weight` | 0.5 | weight of each entry's irradiance under the scene file's lights in clustering: a doubling above the surface's mean counts as this many cluster spacings; 0 = position and normal alone (the paper) |
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the entry points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
@@ -164,6 +166,18 @@
 //!   some negative: each pane's errors now count by its light. The lights
 //!   are those of the scene file: one moved far from where the file put
 //!   it is still unbiased but noisier near its new place.
+//! - A cluster's pane assumes its entries' irradiance is even, so a
+//!   cluster that holds the entries beside a lamp or in a patch of light
+//!   through a doorway together with ten to a hundred times dimmer ones
+//!   spreads the bright few's light over its whole pane: a glow on the
+//!   walls near them. Entries are clustered by their light under the
+//!   scene file's lights too (`irradiance_weight`), so clusters split
+//!   where that light changes steeply; a light moved at run time keeps
+//!   clusters shaped for the file's lights, compact in space still. The
+//!   weight stays at half a cluster spacing a doubling: at a whole one, a
+//!   lamp 12 cm from a corner got clusters so small and hot that the
+//!   compression's error on their panes, times their weight, came back
+//!   as a bright blob ringed by negative light on the floor.
 //! - Near-field light is sampled only as densely as the entry points
 //!   (about 1.4 m apart on Sponza at 4096): receivers within a few tenths
 //!   of a metre of a lit surface (corners, column bases) got too little
@@ -210,11 +224,12 @@ use std::sync::Arc;
 
 /// The parameters only the bake reads; the others act at run time, so one
 /// bake serves every value of them.
-pub const BAKE_PARAMETERS: [&str; 8] = [
+pub const BAKE_PARAMETERS: [&str; 9] = [
     "entries",
     "clusters",
     "paths_per_entry",
     "normal_weight",
+    "irradiance_weight",
     "seed",
     "rank",
     "pane_resolution",
@@ -235,6 +250,7 @@ pub struct PrmParams {
     pub pane_resolution: u32,
     pub pane_texel_size: f32,
     pub normal_weight: f32,
+    pub irradiance_weight: f32,
     pub space_rays: u32,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
@@ -254,6 +270,7 @@ impl Default for PrmParams {
             pane_resolution: 256,
             pane_texel_size: 0.0,
             normal_weight: 0.5,
+            irradiance_weight: 0.5,
             space_rays: 64,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
@@ -299,6 +316,8 @@ impl PrmParams {
             Some("pane_resolution must be 0 (every lightmap texel) or at least 8")
         } else if !(self.normal_weight.is_finite() && self.normal_weight >= 0.0) {
             Some("normal_weight must be a finite number >= 0")
+        } else if !(self.irradiance_weight.is_finite() && self.irradiance_weight >= 0.0) {
+            Some("irradiance_weight must be a finite number >= 0 (0: cluster by position and normal alone)")
         } else {
             None
         };
