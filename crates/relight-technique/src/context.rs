@@ -410,14 +410,20 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 })
             };
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
+            // The eight directions in the receiver's plane, 45 degrees apart,
+            // that both the wall search and the way out from under a cover
+            // step along.
+            let in_plane = |step: usize| {
+                let angle = step as f32 * std::f32::consts::FRAC_PI_4;
+                tangent * angle.cos() + bitangent * angle.sin()
+            };
             // The middle of the part of the texel outside the cover,
             // along the direction in which it is nearest.
             let out_from_under = |position: Vec3| {
                 const STEPS: usize = 8;
                 let mut nearest: Option<(f32, Vec3)> = None;
                 for step in 0..8 {
-                    let angle = step as f32 * std::f32::consts::FRAC_PI_4;
-                    let direction = tangent * angle.cos() + bitangent * angle.sin();
+                    let direction = in_plane(step);
                     for k in 1..=STEPS {
                         let distance = reach * k as f32 / STEPS as f32;
                         let point = position + direction * distance;
@@ -465,8 +471,7 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 let mut behind = [None::<(f32, Vec3)>; 8];
                 let mut touching: Option<(f32, Vec3)> = None;
                 for (step, wall_behind) in behind.iter_mut().enumerate() {
-                    let angle = step as f32 * std::f32::consts::FRAC_PI_4;
-                    let direction = tangent * angle.cos() + bitangent * angle.sin();
+                    let direction = in_plane(step);
                     // Starting a margin back catches a surface the
                     // receiver lies on, which a ray from it would graze.
                     let ray = Ray {
