@@ -590,6 +590,20 @@ pub fn measure_against_path_tracer(
     samples: u32,
     spp: u32,
 ) -> (Measurement, Noise) {
+    let (measurement, noise, _, _) =
+        measure_and_render_against_path_tracer(context, technique, samples, spp);
+    (measurement, noise)
+}
+
+/// [`measure_against_path_tracer`], with the technique's camera image and
+/// the reference it was measured against, for figures of parts of the
+/// image (the tiles around objects' feet).
+pub fn measure_and_render_against_path_tracer(
+    context: &SceneContext,
+    technique: &dyn Technique,
+    samples: u32,
+    spp: u32,
+) -> (Measurement, Noise, Image, std::sync::Arc<ReferenceSet>) {
     static REFERENCES: relight_technique::robustness::OncePerProcess<u64, ReferenceSet> =
         relight_technique::robustness::OncePerProcess::new();
     let split = Split::of(context);
@@ -611,8 +625,10 @@ pub fn measure_against_path_tracer(
             &progress,
         )
     });
-    let (measurement, _) = Measurement::of(context, technique, &reference, &split, 4, &progress);
-    (measurement, reference.noise(&split.visible))
+    let (measurement, image) =
+        Measurement::of(context, technique, &reference, &split, 4, &progress);
+    let noise = reference.noise(&split.visible);
+    (measurement, noise, image, reference)
 }
 
 /// The shipped closed scenes the tightest bounds apply to, relative

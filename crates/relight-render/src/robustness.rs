@@ -116,6 +116,37 @@ impl VariantCase {
         );
         (measured, noise)
     }
+
+    /// [`Self::measure_as_the_study_does`] and the technique's error on the
+    /// tiles around the variant's objects' feet ([`ContactError`]).
+    pub fn measure_contact_as_the_study_does(
+        &self,
+        technique: &dyn Technique,
+    ) -> (Measurement, ContactError) {
+        let (measured, _, image, reference) =
+            crate::convergence::measure_and_render_against_path_tracer(
+                &self.context,
+                technique,
+                STUDY_PATHS,
+                STUDY_PATHS,
+            );
+        let contact = ContactError::of(
+            &image,
+            &reference.image,
+            &reference.tile_standard_errors(),
+            &self.contact_tiles,
+        );
+        println!(
+            "{}: 8x8 tiles {:.1} %, contact tiles {:.1} % ({} tiles, reference noise {:.1} %), contact light {:.3}x",
+            self.variant.name(),
+            measured.image_tiles * 100.0,
+            contact.relative_rmse * 100.0,
+            contact.tiles,
+            contact.reference_noise * 100.0,
+            contact.light_ratio
+        );
+        (measured, contact)
+    }
 }
 
 /// How far from a foot's edge the floor counts as its surroundings: a

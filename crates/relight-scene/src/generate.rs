@@ -234,6 +234,18 @@ pub fn room_on_a_longer_floor_obj(beyond: f32) -> String {
 /// the floor, `[x0, x1]` by `[z0, z1]`.
 pub type Footprint = [[f32; 2]; 2];
 
+/// A box standing in a [`TEST_ROOM`]: its footprint, its bottom's height,
+/// whether it has a bottom face, and its top's height.
+type StandingBox = (Footprint, f32, bool, f32);
+
+/// The four boxes of [`room_with_objects_on_its_floor_obj`].
+const FOUR_STANDING_BOXES: [StandingBox; 4] = [
+    ([[-1.47, -0.88], [-1.37, -0.83]], 0.007, false, 0.7),
+    ([[0.61, 1.34], [-1.29, -0.87]], 0.0, true, 0.5),
+    ([[-1.27, -0.74], [0.72, 1.38]], -0.015, false, 0.9),
+    ([[0.83, 1.22], [0.79, 1.46]], -0.02, true, 0.4),
+];
+
 /// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
 /// facing in, with four boxes of outward faces on its floor as real models
 /// stand them: an open-bottomed box 7 mm above the floor, a box with a
@@ -241,19 +253,25 @@ pub type Footprint = [[f32; 2]; 2];
 /// a bottom 20 mm into it, one in each quarter of the room. Returns the
 /// boxes' footprints with the text.
 pub fn room_with_objects_on_its_floor_obj() -> (String, Vec<Footprint>) {
+    room_with_standing_boxes_obj(&FOUR_STANDING_BOXES)
+}
+
+/// [`room_with_objects_on_its_floor_obj`] with a fifth box in the middle
+/// of the room: one with a bottom face `gap` above the floor, as a model's
+/// furniture often floats a few millimetres over it.
+pub fn room_with_a_raised_bottomed_box_obj(gap: f32) -> (String, Vec<Footprint>) {
+    let mut boxes = FOUR_STANDING_BOXES.to_vec();
+    boxes.push(([[-0.3, 0.3], [-0.3, 0.3]], gap, true, 0.45));
+    room_with_standing_boxes_obj(&boxes)
+}
+
+fn room_with_standing_boxes_obj(boxes: &[StandingBox]) -> (String, Vec<Footprint>) {
     let [width, _, depth] = TEST_ROOM;
     let (x, z) = (width / 2.0, depth / 2.0);
     let mut obj = QuadObj::default();
     obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
     obj.walls_and_ceiling(TEST_ROOM);
-    // (footprint, bottom's height, has a bottom, top's height)
-    let boxes: [(Footprint, f32, bool, f32); 4] = [
-        ([[-1.47, -0.88], [-1.37, -0.83]], 0.007, false, 0.7),
-        ([[0.61, 1.34], [-1.29, -0.87]], 0.0, true, 0.5),
-        ([[-1.27, -0.74], [0.72, 1.38]], -0.015, false, 0.9),
-        ([[0.83, 1.22], [0.79, 1.46]], -0.02, true, 0.4),
-    ];
-    for ([xs, zs], bottom, has_bottom, top) in boxes {
+    for &([xs, zs], bottom, has_bottom, top) in boxes {
         obj.cuboid(
             Vec3::new(xs[0], bottom, zs[0]),
             Vec3::new(xs[1], top, zs[1]),
