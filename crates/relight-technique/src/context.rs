@@ -573,11 +573,12 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 } else if pass == 0 && walls.iter().all(Option::is_none) && under_cover(*position) {
                     // Under an object that stands a few millimetres above
                     // this surface, with no bottom or a low one: rays in
-                    // the plane pass under its walls and meet no back. Left there, the
-                    // receiver is hidden and its texel shows the open
-                    // floor beyond ([`fill_hidden_texels`]), brighter than
-                    // the strip at the object's foot that the texel also
-                    // covers. It moves to the middle of that strip.
+                    // the plane pass under its walls and meet no back.
+                    // Left there, the receiver is hidden and its texel
+                    // shows the open floor beyond ([`fill_hidden_texels`]),
+                    // brighter than the strip at the object's foot that the
+                    // texel also covers. It moves to the middle of that
+                    // strip.
                     if let Some(moved) = out_from_under(*position) {
                         *position = moved;
                     }
