@@ -222,18 +222,16 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 direction: normal,
                 t_max: f32::INFINITY,
             });
-            let low_cover = low_cover_gap(atlas.texel_edge(receivers.triangles[index]));
+            let texel = atlas.texel_edge(receivers.triangles[index]);
             above.is_some_and(|hit| {
                 let facing_away = scene
                     .mesh
                     .geometric_normal(hit.triangle as usize)
                     .dot(normal)
                     > 0.0;
-                if !facing_away && hit.t >= lift && hit.t < low_cover {
-                    return true;
-                }
-                (hit.t < lift || facing_away)
-                    && hidden_surface_point(scene, bvh, position, normal, lift)
+                (hit.t >= lift && is_low_cover(hit.t, facing_away, texel))
+                    || (hit.t < lift || facing_away)
+                        && hidden_surface_point(scene, bvh, position, normal, lift)
             })
         })
         .collect();
@@ -412,7 +410,8 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                 })
                 .is_some_and(|hit| {
                     let facing = scene.mesh.geometric_normal(hit.triangle as usize);
-                    facing.dot(normal) > 0.0 || hit.t < low_cover_gap(texel)
+                    let facing_away = facing.dot(normal) > 0.0;
+                    facing_away || is_low_cover(hit.t, facing_away, texel)
                 })
             };
             let (tangent, bitangent) = relight_core::sampling::orthonormal_basis(normal);
@@ -612,18 +611,19 @@ fn inside_geometry(scene: &Scene, bvh: &Bvh, point: Vec3) -> bool {
     back_hits * 4 > hits
 }
 
-/// The gap under an object's bottom below which the surface beneath
-/// counts as covered, for a texel `texel` metres wide. An object that
-/// stands a few millimetres above a floor on its bottom face leaves a gap
-/// that lets almost no light in; the floor texels under it read nearly
-/// black, yet nothing covers them along their normal within a lift and no
-/// back face encloses them, so they were neither moved out from under the
-/// object nor filled, and lookups beside its foot blended them in: a dark
-/// halo. Below a fifth of a texel the lightmap cannot show light entering
+/// Whether the first surface along a receiver's normal, `distance` away
+/// and facing the receiver unless `facing_away`, is an object's bottom low
+/// enough to count as covering it, for a texel `texel` metres wide. An
+/// object that stands a few millimetres above a floor on its bottom face
+/// leaves a gap that lets almost no light in; the floor texels under it
+/// read nearly black, yet nothing covers them along their normal within a
+/// lift and no back face encloses them, so they were neither moved out
+/// from under the object nor filled, and lookups beside its foot blended
+/// them in: a dark halo. Below a fifth of a texel the lightmap cannot show light entering
 /// the gap anyway; a table's or a bench's height is far above it at the
 /// texel sizes lightmaps use.
-fn low_cover_gap(texel: f32) -> f32 {
-    0.2 * texel
+fn is_low_cover(distance: f32, facing_away: bool, texel: f32) -> bool {
+    !facing_away && distance < 0.2 * texel
 }
 
 /// See [`SceneContext::is_hidden_surface_point`].
@@ -1066,7 +1066,7 @@ mod tests {
     /// the floor around them: none under 0.9. Without
     /// [`fill_hidden_texels`] 11 of the lookups around the first four
     /// read under 0.9 (mean 0.966): the contact halo every technique
-    /// showed. Without [`low_cover_gap`] the floor under the raised box
+    /// showed. Without [`is_low_cover`] the floor under the raised box
     /// with a bottom was neither moved out nor filled: 52 of the 270
     /// lookups read under 0.9 (mean 0.892).
     #[test]
