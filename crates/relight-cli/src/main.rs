@@ -54,7 +54,8 @@ struct Cli {
 #[derive(clap::Args, Clone)]
 struct SceneOptions {
     /// Lightmap atlas size (texels on the longer side); default: automatic
-    /// (128, or the power of two the scene's charts need).
+    /// (128, or the power of two the scene's charts need, grown where that
+    /// would make texels wider than half a metre).
     #[arg(long)]
     lightmap_resolution: Option<u32>,
     /// Lightmap texel size in metres (overrides --lightmap-resolution).

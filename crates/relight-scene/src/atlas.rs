@@ -279,7 +279,7 @@ impl Atlas {
         };
         let graph = EdgeGraph::of(scene);
         let mut charts = grow_charts(scene, &rings, &graph, &HashSet::new());
-        let sizing = match density {
+        let mut sizing = match density {
             TexelDensity::MetresPerTexel(metres) => Sizing::Given(metres),
             TexelDensity::TargetResolution(side) => Sizing::Fitted { side, kept: true },
             TexelDensity::Automatic { minimum } => {
@@ -290,11 +290,18 @@ impl Atlas {
                 }
             }
         };
-        let fit = |charts: &[Chart]| match sizing {
+        let fit = |charts: &[Chart], sizing: Sizing| match sizing {
             Sizing::Given(metres) => Ok((metres, pack_charts(scene, charts, metres, None))),
             Sizing::Fitted { side, .. } => fit_resolution(scene, charts, side),
         };
-        let (mut metres_per_texel, mut packed) = fit(&charts)?;
+        let (mut metres_per_texel, mut packed) = fit(&charts, sizing)?;
+        if matches!(density, TexelDensity::Automatic { .. })
+            && metres_per_texel > LARGEST_AUTOMATIC_TEXEL
+        {
+            sizing = Sizing::Given(LARGEST_AUTOMATIC_TEXEL);
+            metres_per_texel = LARGEST_AUTOMATIC_TEXEL;
+            packed = pack_charts(scene, &charts, metres_per_texel, None);
+        }
         // Split at walls once the texel size is known, and keep it: the
         // automatic size follows the chart count, and real models' small
         // parts (column bases, mouldings) stand on many short edges.
@@ -329,7 +336,7 @@ impl Atlas {
                     let grown = pack_charts(scene, &charts, metres_per_texel, Some(side));
                     if kept && grown.0.max(grown.1) > side {
                         let refitted;
-                        (metres_per_texel, refitted) = fit(&charts)?;
+                        (metres_per_texel, refitted) = fit(&charts, sizing)?;
                         refitted
                     } else {
                         grown
@@ -748,6 +755,17 @@ fn minimal_resolution(chart_count: usize) -> u32 {
     };
     (8..=16384).find(|&side| fits(side)).unwrap_or(16384)
 }
+
+/// The largest texel edge (m) an automatic atlas takes inside the detail
+/// region. A fixed texel count spreads a large, plainly modelled hall over
+/// texels a metre wide, wider than the windows its sun comes through: a
+/// texel's light is its centre's, so a sun patch smaller than a texel
+/// reads all or nothing, and the light it bounces is placed a texel off.
+/// Generated halls lit by a sun through windows lost up to a fifth of
+/// their indirect light that way, and got it back at half-metre texels;
+/// rooms and real models already have finer texels than this. A model's
+/// own lightmap UVs are used as they are.
+pub const LARGEST_AUTOMATIC_TEXEL: f32 = 0.5;
 
 /// How an atlas's texel size is found: given, or fitted to a square side
 /// that a requested resolution keeps and an automatic one may outgrow by a
@@ -1805,6 +1823,29 @@ mod tests {
         let off = Atlas::build(&off, density).unwrap();
         assert_eq!(off.near_light_charts, 0);
         assert_eq!(receivers_on_the_square(&off), receivers_on_the_square(&far));
+    }
+
+    /// A 40 m hall fitted to the automatic 128 texels would get texels of
+    /// 0.6 m; it gets [`LARGEST_AUTOMATIC_TEXEL`], while a requested
+    /// resolution is kept and a 5 m room's automatic texel is what the 128
+    /// texels give it.
+    #[test]
+    fn an_automatic_atlas_keeps_its_texels_under_half_a_metre() {
+        let room = |size: [f32; 3]| {
+            crate::generate::load_obj_scene(&crate::generate::closed_room_obj(size), "")
+                .expect("the room loads")
+        };
+        let hall = room([40.0, 8.0, 20.0]);
+        let automatic = Atlas::build(&hall, TexelDensity::default()).unwrap();
+        assert_eq!(automatic.metres_per_texel, LARGEST_AUTOMATIC_TEXEL);
+        let requested = Atlas::build(&hall, TexelDensity::TargetResolution(128)).unwrap();
+        assert!(requested.metres_per_texel > LARGEST_AUTOMATIC_TEXEL);
+        assert!(automatic.receivers.len() > requested.receivers.len());
+        let small = room([5.0, 2.5, 4.0]);
+        let automatic = Atlas::build(&small, TexelDensity::default()).unwrap();
+        let fitted = Atlas::build(&small, TexelDensity::TargetResolution(128)).unwrap();
+        assert!(automatic.metres_per_texel < LARGEST_AUTOMATIC_TEXEL);
+        assert_eq!(automatic.metres_per_texel, fitted.metres_per_texel);
     }
 
     #[test]

@@ -217,6 +217,17 @@ pub fn room_with_second_ceiling_obj(second_ceiling: Option<f32>) -> String {
     obj.text
 }
 
+/// OBJ faces (no materials) of a closed room `size` metres (width, height,
+/// depth) of single planes facing in, its floor at y = 0 and centred on x
+/// and z: forty metres long, a plainly modelled hall.
+pub fn closed_room_obj(size: [f32; 3]) -> String {
+    let (x, z) = (size[0] / 2.0, size[2] / 2.0);
+    let mut obj = QuadObj::default();
+    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
+    obj.walls_and_ceiling(size);
+    obj.text
+}
+
 /// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
 /// facing in whose floor runs on `beyond` metres past its +x wall, under
 /// it, into the open: as modelling tools leave a floor drawn before the

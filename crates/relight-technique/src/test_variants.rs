@@ -15,7 +15,12 @@ pub(crate) fn default_variant(index: usize) -> (tempfile::TempDir, std::path::Pa
 
 /// The context of [`default_variant`] `index` at the default settings.
 pub(crate) fn default_variant_context(index: usize) -> SceneContext {
+    variant_context(index, ContextSettings::default())
+}
+
+/// The context of [`default_variant`] `index` at `settings`.
+pub(crate) fn variant_context(index: usize, settings: ContextSettings) -> SceneContext {
     let (_folder, path) = default_variant(index);
     let scene = relight_scene::load_scene(&path).expect("variant loads");
-    SceneContext::new(scene, ContextSettings::default()).expect("context")
+    SceneContext::new(scene, settings).expect("context")
 }
