@@ -172,6 +172,17 @@ impl QuadObj {
         }
     }
 
+    /// A closed room, `[width, height, depth]` with its floor at y = 0 and
+    /// centred on x and z, of single planes facing in: the floor, then
+    /// [`Self::walls_and_ceiling`].
+    fn closed_room(size: [f32; 3]) -> Self {
+        let (x, z) = (size[0] / 2.0, size[2] / 2.0);
+        let mut obj = Self::default();
+        obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
+        obj.walls_and_ceiling(size);
+        obj
+    }
+
     /// The four walls and the ceiling of a room, `[width, height, depth]`
     /// with its floor at y = 0 and centred on x and z, facing in.
     fn walls_and_ceiling(&mut self, [width, height, depth]: [f32; 3]) {
@@ -208,9 +219,7 @@ pub const TEST_ROOM: [f32; 3] = [4.0, 2.5, 4.0];
 pub fn room_with_second_ceiling_obj(second_ceiling: Option<f32>) -> String {
     let [width, height, depth] = TEST_ROOM;
     let (x, z) = (width / 2.0, depth / 2.0);
-    let mut obj = QuadObj::default();
-    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
-    obj.walls_and_ceiling(TEST_ROOM);
+    let mut obj = QuadObj::closed_room(TEST_ROOM);
     if let Some(gap) = second_ceiling {
         obj.level([-x, x], height + gap, [-z, z], -Vec3::Y);
     }
@@ -221,11 +230,7 @@ pub fn room_with_second_ceiling_obj(second_ceiling: Option<f32>) -> String {
 /// depth) of single planes facing in, its floor at y = 0 and centred on x
 /// and z: forty metres long, a plainly modelled hall.
 pub fn closed_room_obj(size: [f32; 3]) -> String {
-    let (x, z) = (size[0] / 2.0, size[2] / 2.0);
-    let mut obj = QuadObj::default();
-    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
-    obj.walls_and_ceiling(size);
-    obj.text
+    QuadObj::closed_room(size).text
 }
 
 /// OBJ faces (no materials) of a closed [`TEST_ROOM`] of single planes
@@ -277,11 +282,7 @@ pub fn room_with_a_raised_bottomed_box_obj(gap: f32) -> (String, Vec<Footprint>)
 }
 
 fn room_with_standing_boxes_obj(boxes: &[StandingBox]) -> (String, Vec<Footprint>) {
-    let [width, _, depth] = TEST_ROOM;
-    let (x, z) = (width / 2.0, depth / 2.0);
-    let mut obj = QuadObj::default();
-    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
-    obj.walls_and_ceiling(TEST_ROOM);
+    let mut obj = QuadObj::closed_room(TEST_ROOM);
     for &([xs, zs], bottom, has_bottom, top) in boxes {
         obj.cuboid(
             Vec3::new(xs[0], bottom, zs[0]),
@@ -299,10 +300,8 @@ fn room_with_standing_boxes_obj(boxes: &[StandingBox]) -> (String, Vec<Footprint
 /// under it from room to room.
 pub fn two_rooms_on_one_floor_obj(thickness: f32) -> String {
     let room = [6.0, 2.5, 4.0];
-    let (x, z) = (room[0] / 2.0, room[2] / 2.0);
-    let mut obj = QuadObj::default();
-    obj.level([-x, x], 0.0, [-z, z], Vec3::Y);
-    obj.walls_and_ceiling(room);
+    let z = room[2] / 2.0;
+    let mut obj = QuadObj::closed_room(room);
     let half = thickness / 2.0;
     obj.cuboid(
         Vec3::new(-half, 0.0, -z),

@@ -1000,7 +1000,7 @@ fn a_lamp_beside_a_large_wall_keeps_its_light_in_its_room() {
 #[test]
 fn a_hall_lit_through_small_windows_keeps_its_light() {
     let (case, measured) = srp_on_variant(56, &[]);
-    assert!(case.context.atlas.metres_per_texel <= 0.5);
+    assert!(case.context.atlas.metres_per_texel <= relight_scene::atlas::LARGEST_AUTOMATIC_TEXEL);
     assert!(
         (0.9..=1.1).contains(&measured.light_ratio),
         "{}",

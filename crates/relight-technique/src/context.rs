@@ -230,8 +230,8 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     .dot(normal)
                     > 0.0;
                 (hit.t >= lift && is_low_cover(hit.t, facing_away, texel))
-                    || (hit.t < lift || facing_away)
-                        && hidden_surface_point(scene, bvh, position, normal, lift)
+                    || ((hit.t < lift || facing_away)
+                        && hidden_surface_point(scene, bvh, position, normal, lift))
             })
         })
         .collect();
