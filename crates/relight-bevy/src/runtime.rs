@@ -217,8 +217,18 @@ pub struct RelightStats {
     /// Frames between reading the lights and showing the light computed
     /// from them.
     pub gi_age_frames: u64,
-    /// GI updates shown so far.
+    /// GI updates shown so far (updates that ran).
     pub updates: u64,
+    /// Updates the technique skipped: the scene's state repeated the
+    /// last one's as far as the technique reads it (a camera move, for a
+    /// technique without view-dependent light) and its light had settled.
+    pub skipped_updates: u64,
+    /// Whether the light on screen is where the technique's light settles
+    /// for the scene's newest state: false while that state waits for the
+    /// worker, and while feedback techniques (PIC, SRP, PRM's final
+    /// gather) still add bounces after a change, which the worker does by
+    /// itself while no newer state waits.
+    pub settled: bool,
     /// The technique's stages, then the lightmap bytes and (when it was
     /// refreshed) the volume, in milliseconds, on the worker.
     pub stages: Vec<(String, f64)>,
@@ -334,13 +344,6 @@ struct Job {
     frame: u64,
 }
 
-/// Updates run after the scene last changed, so that techniques which
-/// feed last frame's light back (SRP, PIC) settle.
-const SETTLE_UPDATES: u32 = 8;
-
-/// Frames a scene must stay the same before settling updates start.
-const REST_FRAMES: u32 = 3;
-
 /// The newest job, which the worker takes as soon as it is free: a job
 /// the worker has not taken yet is replaced, never queued, so the worker
 /// never computes stale light and never idles while the scene moves (an
@@ -364,8 +367,13 @@ impl Mailbox {
         self.wake.notify_one();
     }
 
-    fn is_empty(&self) -> bool {
-        self.slot.lock().unwrap().job.is_none()
+    /// The waiting job, if any, without waiting; `None` once closed too.
+    fn try_take(&self) -> Option<Job> {
+        self.slot.lock().unwrap().job.take()
+    }
+
+    fn is_closed(&self) -> bool {
+        self.slot.lock().unwrap().closed
     }
 
     /// The next job, waiting for one; `None` once closed.
@@ -390,8 +398,10 @@ impl Mailbox {
 
 struct Done {
     frame: u64,
-    lightmap: Vec<u8>,
+    /// `None`: the update was skipped, the images hold its light already.
+    lightmap: Option<Vec<u8>>,
     volume: Option<Vec<u8>>,
+    settled: bool,
     stages: Vec<(String, f64)>,
     memory_bytes: usize,
 }
@@ -400,12 +410,9 @@ struct Done {
 struct Worker {
     mailbox: Arc<Mailbox>,
     done: Mutex<Receiver<Result<Done, String>>>,
-    /// What was last posted, and how many more updates to post while it
-    /// stays the same.
+    /// What was last posted, and Bevy's frame when it was.
     posted: Option<SceneState>,
-    settle: u32,
-    /// Frames the posted state has stayed the same.
-    unchanged_frames: u32,
+    posted_frame: Option<u64>,
     /// Bevy's frame whose state the light on screen was computed from.
     shown_frame: Option<u64>,
     lightmap: Handle<Image>,
@@ -879,8 +886,7 @@ fn start_running(
         mailbox,
         done: Mutex::new(done),
         posted: None,
-        settle: 0,
-        unchanged_frames: 0,
+        posted_frame: None,
         shown_frame: None,
         lightmap,
         volume,
@@ -927,10 +933,22 @@ impl Work {
         } = self;
         let mut volume_values = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
         let mut updates = 0u64;
-        while let Some(job) = jobs.take() {
+        let mut settled = true;
+        let mut last: Option<Job> = None;
+        loop {
+            // While the light is still settling after a change, the last
+            // job runs again until a new one arrives.
+            let waiting = match settled {
+                true => jobs.take(),
+                false => jobs.try_take(),
+            };
+            let job = match (waiting, last.take()) {
+                (Some(job), _) => job,
+                (None, Some(job)) if !jobs.is_closed() => job,
+                _ => return,
+            };
             let refresh_volume = updates.is_multiple_of(u64::from(volume_every));
             let index = updates;
-            updates += 1;
             let result = technique
                 .update(&Frame {
                     lights: &job.state.lights,
@@ -940,6 +958,18 @@ impl Work {
                 })
                 .map_err(|error| error.to_string())
                 .map(|()| {
+                    settled = technique.settled();
+                    if technique.timings().skipped {
+                        return Done {
+                            frame: job.frame,
+                            lightmap: None,
+                            volume: None,
+                            settled,
+                            stages: Vec::new(),
+                            memory_bytes: 0,
+                        };
+                    }
+                    updates += 1;
                     let mut stages: Vec<(String, f64)> = technique
                         .timings()
                         .stages
@@ -979,12 +1009,16 @@ impl Work {
                     };
                     Done {
                         frame: job.frame,
-                        lightmap,
+                        lightmap: Some(lightmap),
                         volume,
+                        settled,
                         stages,
                         memory_bytes: technique.memory().iter().map(|entry| entry.bytes).sum(),
                     }
                 });
+            // A failed update is not run again.
+            settled |= result.is_err();
+            last = Some(job);
             if done.send(result).is_err() {
                 return;
             }
@@ -1072,17 +1106,23 @@ fn exchange_with_worker(
         let finished = worker.done.lock().unwrap().try_recv();
         match finished {
             Ok(Ok(done)) => {
-                if let Some(mut image) = images.get_mut(&worker.lightmap) {
-                    image.data = Some(done.lightmap);
+                match done.lightmap {
+                    Some(lightmap) => {
+                        if let Some(mut image) = images.get_mut(&worker.lightmap) {
+                            image.data = Some(lightmap);
+                        }
+                        stats.updates += 1;
+                        stats.stages = done.stages;
+                        stats.memory_bytes = done.memory_bytes;
+                    }
+                    None => stats.skipped_updates += 1,
                 }
                 if let (Some(bytes), Some(handle)) = (done.volume, worker.volume.clone()) {
                     if let Some(mut image) = images.get_mut(&handle) {
                         image.data = Some(bytes);
                     }
                 }
-                stats.updates += 1;
-                stats.stages = done.stages;
-                stats.memory_bytes = done.memory_bytes;
+                stats.settled = done.settled && worker.posted_frame == Some(done.frame);
                 worker.shown_frame = Some(done.frame);
             }
             Ok(Err(message)) => {
@@ -1113,19 +1153,14 @@ fn exchange_with_worker(
                 moving_mesh_poses: (!worker.moving_mesh_poses.is_empty())
                     .then(|| worker.moving_mesh_poses.clone()),
             };
-            // A changed scene replaces whatever job is waiting. One that
-            // has rested a few frames (so the worker is not kept from a
-            // scene about to change) is posted again, once the worker has
-            // taken the last job, until the feedback techniques settle.
+            // A changed scene replaces whatever job is waiting; the
+            // technique skips a state that changes nothing it reads (the
+            // camera, mostly), and the worker settles a resting scene by
+            // itself.
             if worker.posted.as_ref() != Some(&state) {
                 worker.posted = Some(state.clone());
-                worker.settle = SETTLE_UPDATES;
-                worker.unchanged_frames = 0;
-                worker.mailbox.post(Job { state, frame: now });
-            } else if worker.unchanged_frames < REST_FRAMES {
-                worker.unchanged_frames += 1;
-            } else if worker.settle > 0 && worker.mailbox.is_empty() {
-                worker.settle -= 1;
+                worker.posted_frame = Some(now);
+                stats.settled = false;
                 worker.mailbox.post(Job { state, frame: now });
             }
         }

@@ -23,8 +23,9 @@ use std::time::{Duration, Instant};
 #[derive(Clone, Debug)]
 pub struct SnapshotSettings {
     pub scene: RelightScene,
-    /// GI updates shown before the picture is taken (techniques that feed
-    /// last frame's light back need several to reach all bounces).
+    /// GI updates shown before the picture is taken, at most: it is taken
+    /// as soon as the light has settled ([`RelightStats::settled`]), since
+    /// a resting scene's updates stop there.
     pub gi_updates: u64,
     /// Image size; `None`: the scene camera's resolution.
     pub size: Option<[u32; 2]>,
@@ -137,7 +138,8 @@ pub fn render_snapshot(settings: &SnapshotSettings) -> Result<Snapshot, String> 
         }
         // Two frames after the update arrives: the image upload and a
         // render with it.
-        if stats.updates >= settings.gi_updates && screenshot_at.is_none() {
+        let ready = stats.updates >= settings.gi_updates || (stats.updates > 0 && stats.settled);
+        if ready && screenshot_at.is_none() {
             screenshot_at = Some(stats.updates);
             frames_after_screenshot = 0;
         }

@@ -51,8 +51,38 @@ pub struct BenchReport {
     /// lookups of light in space a voxel), which engines run at their own
     /// rate; `None` with `--volume-cells 0`.
     pub irradiance_volume: Option<StageReport>,
+    /// Frames of the timed orbit whose update was skipped (none while the
+    /// lights move).
+    pub skipped_frames: u32,
+    /// The frames after the orbit, with the lights at rest.
+    pub rest: Option<RestReport>,
     pub memory: Vec<(String, usize)>,
     pub memory_total_bytes: usize,
+}
+
+/// What the frames after the orbit cost, with the lights where the orbit
+/// left them: first the camera still too, then the camera moving.
+#[derive(Serialize)]
+pub struct RestReport {
+    /// Frames with the lights and the camera still, then as many with
+    /// only the camera moving.
+    pub frames_each: u32,
+    /// Updates that ran once the lights stopped, before the technique
+    /// settled (feedback techniques add a bounce an update): their cost
+    /// is an engine's until the light stops changing.
+    pub settling_updates: u32,
+    pub settling_ms: f64,
+    /// Whether the technique had settled by the last still frame.
+    pub settled: bool,
+    /// Frames of each half whose update was skipped.
+    pub skipped_still: u32,
+    pub skipped_camera_moving: u32,
+    /// The update's time on the frames it skipped (median and 95th
+    /// percentile over both halves).
+    pub skipped: Option<StageReport>,
+    /// The update's time on camera-moving frames it ran (view-dependent
+    /// light), if any.
+    pub camera_moving: Option<StageReport>,
 }
 
 fn percentile(sorted: &[f64], fraction: f64) -> f64 {
@@ -143,6 +173,9 @@ pub struct BenchSettings {
     /// Idle time before each frame (an engine's worker waiting for the
     /// next frame's lights).
     pub pause: std::time::Duration,
+    /// Frames after the orbit with the lights at rest, then as many with
+    /// only the camera moving (0: none).
+    pub rest_frames: u32,
 }
 
 pub fn run(
@@ -156,6 +189,7 @@ pub fn run(
         shading_resolution,
         volume_cells,
         pause,
+        rest_frames,
     } = settings;
     let frames = frames.max(1);
     let resolution = shading_resolution.unwrap_or(context.scene.camera.resolution);
@@ -181,7 +215,8 @@ pub fn run(
     let mut volume_texels = vec![Rgb::ZERO; grid.map_or(0, |grid| grid.voxel_count() * 6)];
     let mut volume_samples = Vec::new();
     let mut first_update = (0.0, 0);
-    progress.start("bench", (frames + WARM_UP_FRAMES) as u64);
+    let mut skipped_frames = 0;
+    progress.start("bench", (frames + WARM_UP_FRAMES + 2 * rest_frames) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
         let lights = relight_engine::orbit(base, centre, index, frames);
         if !pause.is_zero() {
@@ -212,6 +247,7 @@ pub fn run(
             };
             stage_samples[slot].push(duration.as_secs_f64() * 1e3);
         }
+        skipped_frames += u32::from(timings.skipped);
         let update_ms = timings.total().as_secs_f64() * 1e3;
         totals.push(update_ms);
         if let Some(values) = technique.receiver_irradiance() {
@@ -232,6 +268,19 @@ pub fn run(
             shading_samples.push(start.elapsed().as_secs_f64() * 1e3);
         }
     }
+    let last_lights = relight_engine::orbit(base, centre, frames + WARM_UP_FRAMES - 1, frames);
+    let rest = (rest_frames > 0)
+        .then(|| {
+            rest_frames_report(
+                context,
+                technique,
+                &last_lights,
+                frames,
+                rest_frames,
+                progress,
+            )
+        })
+        .transpose()?;
     progress.finish();
     let memory: Vec<(String, usize)> = technique
         .memory()
@@ -271,9 +320,80 @@ pub fn run(
             let [x, y, z] = grid.resolution.to_array();
             stage_report(&format!("irradiance volume {x}x{y}x{z}"), volume_samples)
         }),
+        skipped_frames,
+        rest,
         memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
         memory,
     })
+}
+
+/// Runs `rest_frames` frames with `lights` still and the scene's camera,
+/// then as many turning the camera about its target, numbered on from the
+/// orbit's last frame.
+fn rest_frames_report(
+    context: &SceneContext,
+    technique: &mut dyn Technique,
+    lights: &[Light],
+    orbit_frames: u32,
+    rest_frames: u32,
+    progress: &dyn Progress,
+) -> Result<RestReport> {
+    let mut report = RestReport {
+        frames_each: rest_frames,
+        settling_updates: 0,
+        settling_ms: 0.0,
+        settled: false,
+        skipped_still: 0,
+        skipped_camera_moving: 0,
+        skipped: None,
+        camera_moving: None,
+    };
+    let (mut skipped, mut camera_moving) = (Vec::new(), Vec::new());
+    let scene_camera = &context.scene.camera;
+    let mut camera = scene_camera.clone();
+    let mut settling = true;
+    for rest_index in 0..2 * rest_frames {
+        let moving_camera = rest_index >= rest_frames;
+        if moving_camera {
+            // A tenth of a turn about the target over the half.
+            let angle = 0.1 * std::f32::consts::TAU * (rest_index - rest_frames + 1) as f32
+                / rest_frames as f32;
+            let turn = glam::Quat::from_rotation_y(angle);
+            camera.eye = scene_camera.target + turn * (scene_camera.eye - scene_camera.target);
+        }
+        let start = std::time::Instant::now();
+        technique.update(&Frame {
+            lights,
+            index: u64::from(orbit_frames + WARM_UP_FRAMES + rest_index),
+            // The orbit's frames give no camera (the scene's): so do the
+            // still ones.
+            camera: moving_camera.then_some(&camera),
+            moving_mesh_poses: None,
+        })?;
+        let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
+        progress.advance(1);
+        let timings = technique.timings();
+        if timings.skipped {
+            settling = false;
+            skipped.push(elapsed_ms);
+            match moving_camera {
+                true => report.skipped_camera_moving += 1,
+                false => report.skipped_still += 1,
+            }
+        } else if moving_camera {
+            camera_moving.push(elapsed_ms);
+        } else if settling {
+            report.settling_updates += 1;
+            report.settling_ms += elapsed_ms;
+        }
+        if rest_index + 1 == rest_frames {
+            report.settled = technique.settled();
+        }
+    }
+    report.skipped = (!skipped.is_empty()).then(|| stage_report("skipped update", skipped));
+    report.camera_moving =
+        (!camera_moving.is_empty()).then(|| stage_report("camera-moving update", camera_moving));
+    Ok(report)
 }
 
 impl fmt::Display for BenchReport {
@@ -323,11 +443,51 @@ impl fmt::Display for BenchReport {
                 )?;
             }
         }
+        if self.skipped_frames > 0 {
+            writeln!(f, "{} of the timed frames skipped", self.skipped_frames)?;
+        }
+        if let Some(rest) = &self.rest {
+            writeln!(f, "{rest}")?;
+        }
         writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;
         for (buffer, bytes) in &self.memory {
             writeln!(f, "{buffer:<28} {bytes:>12}")?;
         }
         write!(f, "{:<28} {:>12}", "memory total", self.memory_total_bytes)
+    }
+}
+
+impl fmt::Display for RestReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "lights at rest, {} frames still then {} with the camera moving:",
+            self.frames_each, self.frames_each
+        )?;
+        writeln!(
+            f,
+            "  {} updates ran before the light settled ({:.1} ms in all){}",
+            self.settling_updates,
+            self.settling_ms,
+            if self.settled {
+                ""
+            } else {
+                "; still unsettled at the last still frame"
+            }
+        )?;
+        write!(
+            f,
+            "  skipped: {} of the still frames, {} of the camera-moving ones",
+            self.skipped_still, self.skipped_camera_moving
+        )?;
+        for stage in [&self.skipped, &self.camera_moving].into_iter().flatten() {
+            write!(
+                f,
+                "\n  {:<26} {:>12.4} {:>12.4}   (median, p95 ms)",
+                stage.stage, stage.median_ms, stage.p95_ms
+            )?;
+        }
+        Ok(())
     }
 }
 

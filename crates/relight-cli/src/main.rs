@@ -212,6 +212,11 @@ enum Command {
         /// what an idle gap costs the next update (caches, clock speed).
         #[arg(long, default_value_t = 0.0)]
         pause_ms: f64,
+        /// After the orbit, this many frames with the lights at rest, then
+        /// as many with only the camera moving: what an engine pays while
+        /// nothing it lights changes (updates are skipped once settled).
+        #[arg(long, default_value_t = 20)]
+        rest_frames: u32,
         /// Also write the report as JSON.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -732,6 +737,7 @@ fn run(cli: Cli) -> Result<()> {
             shading_resolution,
             volume_cells,
             pause_ms,
+            rest_frames,
             json,
         } => {
             if !pause_ms.is_finite() || !(0.0..=60_000.0).contains(&pause_ms) {
@@ -747,6 +753,7 @@ fn run(cli: Cli) -> Result<()> {
                     shading_resolution,
                     volume_cells,
                     pause: std::time::Duration::from_secs_f64(pause_ms / 1e3),
+                    rest_frames,
                 },
                 &Bars::new(quiet),
             )?;

@@ -184,9 +184,9 @@ use relight_core::colour::luminance;
 use relight_core::Rgb;
 use relight_scene::{Light, Mesh, Scene};
 use relight_technique::{
-    parse_params, with_scene_section, FinalGather, FinalGatherSettings, Frame, GatherReach,
-    MemoryEntry, NearLightRows, NearLightSamples, Progress, SceneContext, StageTimings,
-    SurfaceGather, SurfacePoint, Technique, TechniqueError, TechniqueKind,
+    parse_params, with_scene_section, FinalGather, FinalGatherSettings, Frame, FrameReads,
+    GatherReach, LastFrame, MemoryEntry, NearLightRows, NearLightSamples, Progress, SceneContext,
+    StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError, TechniqueKind,
 };
 use serde::{Deserialize, Serialize};
 use std::f32::consts::PI;
@@ -556,6 +556,8 @@ pub struct LightSkin {
     near_light: NearLightSamples,
     near_light_rows: NearLightRows,
     timings: StageTimings,
+    /// What the last update read, to skip a frame that repeats it.
+    last_frame: LastFrame,
 }
 
 impl LightSkin {
@@ -732,6 +734,7 @@ impl LightSkin {
             params,
             context,
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
         })
     }
 
@@ -1211,8 +1214,24 @@ impl Technique for LightSkin {
         Some(1)
     }
 
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
+    }
+
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let start = std::time::Instant::now();
         let poses = self.moving_mesh_poses(frame)?;
+        // A single bounce: the same lights, moving meshes and (for glossy
+        // light, which the update gathers toward the eye) camera give the
+        // same light.
+        let reads = FrameReads {
+            camera: !self.glossy_sums.is_empty(),
+            moving_meshes: !self.dynamic_meshes.is_empty(),
+        };
+        if self.last_frame.repeats(frame, reads) {
+            self.timings.skip(start);
+            return Ok(());
+        }
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
         self.lights.clear();

@@ -950,8 +950,9 @@ fn unlit_room_gets_the_light_that_crosses_the_doorway() {
 }
 
 /// Glossy light is gathered for the frame's camera: the same point and
-/// view direction read other glossy light once the camera has moved, and
-/// a frame without a camera uses the scene's.
+/// view direction read other glossy light once the camera has moved (so a
+/// frame that moves only the camera is not skipped), and a frame without a
+/// camera uses the scene's.
 #[test]
 fn glossy_light_follows_the_frames_camera() {
     let mut scene = closed_cube(
@@ -1010,6 +1011,25 @@ fn glossy_light_follows_the_frames_camera() {
     assert!(
         (elsewhere - scene_camera).abs().max_element() > 0.01 * scene_camera.max_element(),
         "{elsewhere} against {scene_camera}"
+    );
+    // Glossy light is gathered in the update: a camera move alone is not
+    // a repeated frame to skip, as it is without glossy surfaces.
+    let mut technique = LightSkin::new(context.clone(), params.clone()).unwrap();
+    let lights = context.scene.lights.clone();
+    for (index, camera) in [None, Some(&moved)].into_iter().enumerate() {
+        technique
+            .update(&Frame {
+                lights: &lights,
+                index: index as u64,
+                camera,
+                moving_mesh_poses: None,
+            })
+            .unwrap();
+        assert!(!technique.timings().skipped, "update {index}");
+    }
+    assert_eq!(
+        technique.glossy_radiance(&floor, toward_viewer, 40.0),
+        Some(elsewhere)
     );
 }
 

@@ -11,8 +11,8 @@ use relight_core::{sh, Rgb};
 use relight_scene::atlas::{Atlas, TexelDensity};
 use relight_scene::Light;
 use relight_technique::{
-    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
-    StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, FrameReads, LastFrame, MemoryEntry, SceneContext,
+    SettlingPasses, StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::direct::Footprints;
 use std::f32::consts::PI;
@@ -104,7 +104,13 @@ pub struct Pic {
     /// instead of looking each up again.
     receiver_values: Vec<Rgb>,
     timings: StageTimings,
+    /// What the last update read, to skip a frame that repeats it.
+    last_frame: LastFrame,
     updates: u64,
+    /// The passes since the lights last changed, each update one; the
+    /// light is settled when they say another adds too little to see.
+    resting: SettlingPasses,
+    settled: bool,
     /// The last frame's lights, for gathers at points in space.
     lights: Vec<Light>,
     /// The surfaces beside the scene file's lights, which the lightmap
@@ -209,7 +215,10 @@ impl Pic {
             pull_top: Vec::new(),
             receiver_values: vec![Rgb::ZERO; context.atlas.receivers.len()],
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
             updates: 0,
+            resting: SettlingPasses::default(),
+            settled: false,
             lights: Vec::new(),
             near_light: NearLightCaches::default(),
             cache_scales: Vec::new(),
@@ -1116,7 +1125,14 @@ impl Technique for Pic {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
-        let mut settling = SettlingPasses::for_update(self.settings.bounces, self.updates == 0);
+        let start = Instant::now();
+        let repeated = self.last_frame.repeats(frame, FrameReads::default());
+        if repeated && self.settled {
+            self.timings.skip(start);
+            return Ok(());
+        }
+        let first = self.updates == 0;
+        let mut settling = SettlingPasses::for_update(self.settings.bounces, first);
         let feedback = self.settings.bounces > 1;
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
@@ -1187,7 +1203,27 @@ impl Technique for Pic {
                 .push_stages(&mut self.timings, gather_time);
         }
         self.updates += 1;
+        // The first update ran its passes until they settled; a later one
+        // adds one bounce, and the resting scene's updates go on adding
+        // them until the caches' light stops changing.
+        self.settled = !feedback || first || {
+            if !repeated {
+                self.resting = SettlingPasses::at_rest(self.settings.bounces);
+            }
+            let (cache_sh, stride) = (&self.cache_sh, self.stride);
+            !self.resting.another_pass(|values: &mut Vec<f32>| {
+                values.extend(cache_sh.iter().step_by(stride).copied())
+            })
+        };
         Ok(())
+    }
+
+    fn settled(&self) -> bool {
+        self.settled
+    }
+
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {

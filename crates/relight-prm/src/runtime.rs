@@ -8,8 +8,8 @@ use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use relight_core::{luminance, Rgb};
 use relight_technique::{
-    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, StageTimings,
-    SurfaceGather, SurfacePoint, Technique, TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, FrameReads, LastFrame, MemoryEntry, SceneContext,
+    SettlingPasses, StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::direct::{DirectLight, DirectSettings, Footprints, StaticDirect};
 use std::sync::Arc;
@@ -37,6 +37,14 @@ pub struct Prm {
     receiver_values: Vec<Rgb>,
     lightmap: Vec<Rgb>,
     timings: StageTimings,
+    /// What the last update read, to skip a frame that repeats it.
+    last_frame: LastFrame,
+    /// The final gather's passes since the lights last changed, one an
+    /// update: its hits on gathering receivers reflect the last gather,
+    /// so its near field takes a few updates to settle after a change.
+    resting: SettlingPasses,
+    settled: bool,
+    updated: bool,
     /// The direct-light settings for entry points: fewer shadow rays toward
     /// area lights than a lightmap texel gets, since a cluster's weight
     /// averages its entries.
@@ -51,6 +59,11 @@ pub struct Prm {
     /// by contribution.
     ranking_scale: Vec<f32>,
 }
+
+/// The most updates a resting scene runs for the final gather's near
+/// field to settle: each carries it one bounce further, and a bounce keeps
+/// at most about half the light in a white room.
+const RESTING_GATHERS: u32 = 32;
 
 /// How the top-K clusters are chosen each frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -144,6 +157,10 @@ impl Prm {
             bake,
             top_k,
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
+            resting: SettlingPasses::default(),
+            settled: false,
+            updated: false,
             lights: Vec::new(),
             space_gather: SurfaceGather::new(space_rays),
             final_gather,
@@ -259,6 +276,12 @@ impl Technique for Prm {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let start = std::time::Instant::now();
+        let repeated = self.last_frame.repeats(frame, FrameReads::default());
+        if repeated && self.settled {
+            self.timings.skip(start);
+            return Ok(());
+        }
         self.timings.clear();
         self.lights.clear();
         self.lights.extend_from_slice(frame.lights);
@@ -362,7 +385,27 @@ impl Technique for Prm {
         self.timings.time("dilation", || {
             context.atlas.scatter_into(receiver_values, lightmap);
         });
+        // The panes answer the lights at once; the first update gathers
+        // until its near field settles, a later one once.
+        let first = !std::mem::replace(&mut self.updated, true);
+        self.settled = first || final_gather.is_empty() || {
+            if !repeated {
+                self.resting = SettlingPasses::at_rest(RESTING_GATHERS);
+            }
+            let values = final_gather.values();
+            !self.resting.another_pass(|measured: &mut Vec<f32>| {
+                measured.extend(values.iter().map(|&value| luminance(value)))
+            })
+        };
         Ok(())
+    }
+
+    fn settled(&self) -> bool {
+        self.settled
+    }
+
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {

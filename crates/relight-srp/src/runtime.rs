@@ -11,8 +11,8 @@ use rayon::prelude::*;
 use relight_core::{sh, Rgb, Rgb9e5};
 use relight_scene::Light;
 use relight_technique::{
-    FinalGather, FinalGatherSettings, Frame, MemoryEntry, SceneContext, SettlingPasses,
-    StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
+    FinalGather, FinalGatherSettings, Frame, FrameReads, LastFrame, MemoryEntry, SceneContext,
+    SettlingPasses, StageTimings, SurfaceGather, SurfacePoint, Technique, TechniqueError,
 };
 use relight_trace::direct::Footprints;
 use relight_trace::Ray;
@@ -102,6 +102,8 @@ pub struct Srp {
     /// [`Atlas::fill_hidden`]: relight_scene::atlas::Atlas::fill_hidden
     slot_of_receiver: Vec<u32>,
     timings: StageTimings,
+    /// What the last update read, to skip a frame that repeats it.
+    last_frame: LastFrame,
     /// Round-robin position of staggered updates.
     next_probe: usize,
     /// Probes refreshed this frame, and the texels they read.
@@ -122,6 +124,12 @@ pub struct Srp {
     gathered_areas: Vec<f32>,
     gathered_static: Vec<Rgb>,
     updates: u64,
+    /// The passes since the lights last changed, each update one; the
+    /// light is settled when they say another adds too little to see.
+    resting: SettlingPasses,
+    /// Probes relit since the lights last changed.
+    relit_at_rest: usize,
+    settled: bool,
     /// The last frame's lights and the fixed rays that answer points in
     /// space from the light leaving the surfaces around them.
     lights: Vec<Light>,
@@ -266,6 +274,7 @@ impl Srp {
             slot_of_texel,
             slot_of_receiver,
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
             next_probe: 0,
             refreshing: Vec::with_capacity(probe_count),
             needed: Vec::new(),
@@ -276,6 +285,9 @@ impl Srp {
             visible_static: Default::default(),
             gathered_static: Vec::new(),
             updates: 0,
+            resting: SettlingPasses::default(),
+            relit_at_rest: 0,
+            settled: false,
             lights: Vec::new(),
             space_gather: SurfaceGather::new(settings.space_rays),
             final_gather,
@@ -349,6 +361,29 @@ impl Srp {
     /// The probe radiance vector (lambda) after the last update.
     pub fn probe_radiance(&self) -> &[f32] {
         &self.probe_radiance
+    }
+
+    /// Whether the light is settled after an update: the first ran its
+    /// passes until it was; a later one adds one bounce, and the resting
+    /// scene's updates go on adding them until the visible texels' light
+    /// stops changing and, under a probe budget, every probe has been
+    /// relit since the lights last changed (stale probes change the light
+    /// without a bounce's steady fall, which the passes could not judge).
+    fn settle_at_rest(&mut self, first: bool, repeated: bool) -> bool {
+        if (self.settings.bounces <= 1 && self.settings.probe_budget == 0) || first {
+            return true;
+        }
+        if !repeated {
+            self.resting = SettlingPasses::at_rest(self.settings.bounces);
+            self.relit_at_rest = 0;
+        }
+        self.relit_at_rest += self.refreshing.len();
+        let indirect = &self.visible_indirect;
+        let bounces_add = self.settings.bounces > 1
+            && self.resting.another_pass(|values: &mut Vec<f32>| {
+                values.extend(indirect.iter().map(|&value| relight_core::luminance(value)))
+            });
+        !bounces_add && self.relit_at_rest >= self.bake.probes.len()
     }
 
     /// Chooses this frame's probes and the probe-visible texels they read.
@@ -851,6 +886,13 @@ impl Technique for Srp {
     }
 
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let start = std::time::Instant::now();
+        let repeated = self.last_frame.repeats(frame, FrameReads::default());
+        if repeated && self.settled {
+            self.timings.skip(start);
+            return Ok(());
+        }
+        let first = self.updates == 0;
         let mut timings = std::mem::take(&mut self.timings);
         timings.clear();
         self.lights.clear();
@@ -859,7 +901,7 @@ impl Technique for Srp {
             self.select_probes();
             self.direct_light(frame);
         });
-        let mut settling = SettlingPasses::for_update(self.settings.bounces, self.updates == 0);
+        let mut settling = SettlingPasses::for_update(self.settings.bounces, first);
         let gathers_feed_back = self.gathers_feed_back();
         let mut hits_lit = false;
         let mut gather_in_passes = std::time::Duration::ZERO;
@@ -910,7 +952,16 @@ impl Technique for Srp {
         timings.time("receiver values", || self.gather_receiver_values());
         self.timings = timings;
         self.updates += 1;
+        self.settled = self.settle_at_rest(first, repeated);
         Ok(())
+    }
+
+    fn settled(&self) -> bool {
+        self.settled
+    }
+
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {

@@ -3,8 +3,8 @@
 
 use crate::params::parse_params;
 use crate::{
-    Frame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint, Technique,
-    TechniqueError, TechniqueKind,
+    Frame, FrameReads, LastFrame, MemoryEntry, Progress, SceneContext, StageTimings, SurfacePoint,
+    Technique, TechniqueError, TechniqueKind,
 };
 use glam::{Vec2, Vec3};
 use relight_core::sampling::{stratified_square, SampleStream};
@@ -24,6 +24,7 @@ struct DirectOnly {
     direct_lightmap: Vec<Rgb>,
     zero: Vec<Rgb>,
     timings: StageTimings,
+    last_frame: LastFrame,
 }
 
 impl TechniqueKind for DirectKind {
@@ -56,6 +57,7 @@ impl TechniqueKind for DirectKind {
             direct_lightmap: vec![Rgb::ZERO; receivers],
             zero: vec![Rgb::ZERO; receivers],
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
         }))
     }
 }
@@ -64,7 +66,15 @@ impl Technique for DirectOnly {
     fn name(&self) -> &'static str {
         "direct"
     }
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
+    }
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let start = std::time::Instant::now();
+        if self.last_frame.repeats(frame, FrameReads::default()) {
+            self.timings.skip(start);
+            return Ok(());
+        }
         self.timings.clear();
         let context = &self.context;
         let lightmap = &mut self.direct_lightmap;
@@ -210,6 +220,7 @@ struct Reference {
     lightmap: Vec<Rgb>,
     lights: Vec<Light>,
     timings: StageTimings,
+    last_frame: LastFrame,
 }
 
 impl TechniqueKind for ReferenceKind {
@@ -237,6 +248,7 @@ impl TechniqueKind for ReferenceKind {
             lightmap: Vec::new(),
             lights: Vec::new(),
             timings: StageTimings::default(),
+            last_frame: LastFrame::default(),
         }))
     }
 }
@@ -255,7 +267,15 @@ impl Technique for Reference {
     fn name(&self) -> &'static str {
         "reference"
     }
+    fn forget_last_frame(&mut self) {
+        self.last_frame.forget();
+    }
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
+        let start = std::time::Instant::now();
+        if self.last_frame.repeats(frame, FrameReads::default()) {
+            self.timings.skip(start);
+            return Ok(());
+        }
         self.timings.clear();
         self.lights = frame.lights.to_vec();
         let settings = self.path_settings();

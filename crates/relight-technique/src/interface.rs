@@ -42,12 +42,23 @@ pub struct StageTimings {
     /// Feedback passes the update ran (each adds a bounce); 0 for a
     /// technique without feedback.
     pub feedback_passes: u32,
+    /// The update found its frame repeating the last one and its light
+    /// settled, so it did nothing (its one stage times the check).
+    pub skipped: bool,
 }
 
 impl StageTimings {
     pub fn clear(&mut self) {
         self.stages.clear();
         self.feedback_passes = 0;
+        self.skipped = false;
+    }
+
+    /// Records an update skipped after checking its frame since `start`.
+    pub fn skip(&mut self, start: std::time::Instant) {
+        self.clear();
+        self.skipped = true;
+        self.stages.push(("unchanged frame", start.elapsed()));
     }
 
     /// Runs `work`, records its duration under `stage`, returns its result.
@@ -99,8 +110,27 @@ impl Progress for NoProgress {
 pub trait Technique: Send + Sync {
     fn name(&self) -> &'static str;
 
-    /// Brings internal state up to date with `frame`'s lights.
+    /// Brings internal state up to date with `frame`'s lights. A frame
+    /// that gives the update what the last one gave it (the lights, and
+    /// the camera and moving meshes where the technique reads them) is
+    /// skipped once the light is [`Technique::settled`], and the timings
+    /// say so: an engine may call this every frame.
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError>;
+
+    /// Whether another update with the last frame would leave the light
+    /// where it is. A technique that feeds last frame's light back (PIC,
+    /// SRP) adds a bounce an update after its lights change, and is
+    /// unsettled until the bounces it still adds are too small to see
+    /// ([`crate::SettlingPasses`]); an engine keeps updating a resting
+    /// scene while this is false.
+    fn settled(&self) -> bool {
+        true
+    }
+
+    /// Makes the next update run whatever its frame, as after a change of
+    /// lights: for measurements that repeat updates under the same lights
+    /// (their time, how far a first update settled).
+    fn forget_last_frame(&mut self) {}
 
     /// Indirect irradiance (W/m^2) arriving at a point of the static scene on
     /// the side its `normal` faces.

@@ -79,6 +79,7 @@ mod gather;
 mod interface;
 mod params;
 mod payload;
+mod repeat;
 pub mod robustness;
 mod settling;
 mod shard;
@@ -103,6 +104,7 @@ pub use gather::SurfaceGather;
 pub use interface::*;
 pub use params::{parse_params, with_scene_section, ParamError};
 pub use payload::{PayloadReader, PayloadWriter};
+pub use repeat::{FrameReads, LastFrame};
 pub use settling::{SettlingPasses, SETTLED_SHARE};
 pub use shard::{
     join_parts, parameters_fingerprint, read_shard_set, shards_disagree, BakePart, Shard, ShardSet,

@@ -131,6 +131,8 @@ pub fn settled_share(technique: &mut dyn Technique, lights: &[Light], more: u32)
     };
     let first = total(technique);
     for index in 1..=more {
+        // Each a bounce more, as before the light counted as settled.
+        technique.forget_last_frame();
         technique
             .update(&Frame {
                 lights,

@@ -57,6 +57,17 @@ impl SettlingPasses {
         }
     }
 
+    /// The updates of a resting scene after its lights last changed, of a
+    /// technique whose `bounces` parameter caps them: each update is one
+    /// pass, recorded here until the bounces settle (the update that
+    /// changed the lights is the first).
+    pub fn at_rest(bounces: u32) -> Self {
+        Self {
+            feedback: true,
+            ..Self::new(bounces)
+        }
+    }
+
     /// At most `most` passes (at least one runs).
     fn new(most: u32) -> Self {
         Self {
