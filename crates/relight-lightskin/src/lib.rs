@@ -531,12 +531,14 @@ pub struct LightSkin {
     /// The texels' interpolated glossy lights (empty without glossy
     /// materials); their diffuse lights are evaluated as they are blended.
     texel_glossy: Vpls,
-    /// The receivers' irradiance (final gather included) as a dilated
-    /// lightmap, which shading samples; and the texels' interpolated
-    /// glossy lights, which shading evaluates per pixel.
-    irradiance_map: Vec<Rgb>,
-    glossy_power_map: Vec<Rgb>,
-    glossy_position_map: Vec<Rgb>,
+    /// The receiver each lightmap texel shows: shading samples the
+    /// receivers' irradiance (final gather included) and the texels'
+    /// interpolated glossy lights through it, so no frame builds a map.
+    shown_receiver: Vec<u32>,
+    /// Per receiver, whether the final gather writes its light. One
+    /// bounce: the gather's hits reflect direct light alone and never read
+    /// the interpolated value there, so it is not computed.
+    gathered_receivers: Vec<bool>,
     /// Per moving-mesh vertex (all meshes in order): neighbours among the
     /// mesh's own points (global indices), mesh-space normals, and lights.
     vertex_interpolation: Interpolation,
@@ -679,7 +681,6 @@ impl LightSkin {
 
         let point_count = sparse.positions.len();
         let receiver_count = context.atlas.receivers.len();
-        let map_size = (context.atlas.width * context.atlas.height) as usize;
         let final_gather = match params.final_gather_settings() {
             Ok(settings) => FinalGather::build(&context, settings, params.points as usize, false),
             Err(message) => {
@@ -714,9 +715,8 @@ impl LightSkin {
             point_glossy: Vpls::zeroed(if glossy { point_count } else { 0 }),
             texel_interpolation,
             texel_glossy: Vpls::zeroed(if glossy { receiver_count } else { 0 }),
-            irradiance_map: vec![Rgb::ZERO; map_size],
-            glossy_power_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
-            glossy_position_map: vec![Rgb::ZERO; if glossy { map_size } else { 0 }],
+            shown_receiver: context.atlas.dilated_receiver_of_texel(),
+            gathered_receivers: final_gather.replaces(receiver_count),
             vertex_interpolation,
             vertex_normals_local,
             vertex_diffuse: Vpls::zeroed(vertex_count),
@@ -1076,17 +1076,19 @@ impl LightSkin {
         if !self.glossy_sums.is_empty() {
             self.texel_glossy
                 .interpolate_from(&self.point_glossy, &self.texel_interpolation);
-            atlas.scatter_into(&self.texel_glossy.power, &mut self.glossy_power_map);
-            atlas.scatter_into(&self.texel_glossy.position, &mut self.glossy_position_map);
         }
         // Each texel's light is blended and evaluated in one pass: the
         // blended lights are not stored, since nothing else reads them.
         let receivers = &atlas.receivers;
         let (interpolation, sources) = (&self.texel_interpolation, &self.point_diffuse);
+        let gathered = &self.gathered_receivers;
         self.receiver_irradiance
             .par_iter_mut()
             .enumerate()
             .for_each(|(index, irradiance)| {
+                if gathered.get(index) == Some(&true) {
+                    return;
+                }
                 let (power, light) = interpolation.blend(index, &sources.power, &sources.position);
                 *irradiance = phong_diffuse(
                     power,
@@ -1288,11 +1290,6 @@ impl Technique for LightSkin {
             self.apply_final_gather(frame.lights);
             self.final_gather.push_stages(&mut timings, start.elapsed());
         }
-        timings.time("lightmap", || {
-            self.context
-                .atlas
-                .scatter_into(&self.receiver_irradiance, &mut self.irradiance_map)
-        });
         self.timings = timings;
         Ok(())
     }
@@ -1316,7 +1313,12 @@ impl Technique for LightSkin {
         // The lightmap, not equation 10 per pixel (see the crate doc).
         self.context
             .atlas
-            .sample(&self.irradiance_map, point.triangle, point.barycentric)
+            .sample_receivers(
+                &self.shown_receiver,
+                &self.receiver_irradiance,
+                point.triangle,
+                point.barycentric,
+            )
             .max(Rgb::ZERO)
     }
 
@@ -1355,8 +1357,11 @@ impl Technique for LightSkin {
             return None;
         }
         let atlas = &self.context.atlas;
-        let power = atlas.sample(&self.glossy_power_map, point.triangle, point.barycentric);
-        let light = atlas.sample(&self.glossy_position_map, point.triangle, point.barycentric);
+        let shown = &self.shown_receiver;
+        let (triangle, barycentric) = (point.triangle, point.barycentric);
+        let power = atlas.sample_receivers(shown, &self.texel_glossy.power, triangle, barycentric);
+        let light =
+            atlas.sample_receivers(shown, &self.texel_glossy.position, triangle, barycentric);
         let reflected = (-toward_viewer).reflect(point.normal).normalize_or_zero();
         let lobe = self.params.specular * (exponent + 1.0) / (2.0 * PI);
         Some(
@@ -1412,11 +1417,8 @@ impl Technique for LightSkin {
             ),
             MemoryEntry::new("texel glossy lights", self.texel_glossy.memory_bytes()),
             MemoryEntry::new(
-                "light maps",
-                (self.irradiance_map.len()
-                    + self.glossy_power_map.len()
-                    + self.glossy_position_map.len())
-                    * 12,
+                "lightmap texels' receivers",
+                self.shown_receiver.len() * 4 + self.gathered_receivers.len(),
             ),
             MemoryEntry::new("receiver irradiance", self.receiver_irradiance.len() * 12),
         ];

@@ -410,17 +410,27 @@ impl PointGrid {
 
 /// Every receiver's light from the pane points' (`out[r] = sum of weight x
 /// value` over its taps).
+///
+/// Receivers marked in `skipped` (empty: none) keep what they hold.
 pub fn upsample(
     upsampling: &Upsampling,
     values: &[relight_core::Rgb],
+    skipped: &[bool],
     out: &mut [relight_core::Rgb],
 ) {
     const SCALE: f32 = 1.0 / 65535.0;
     out.par_chunks_mut(4096)
+        .enumerate()
         .zip(upsampling.points.par_chunks(4096))
         .zip(upsampling.weights.par_chunks(4096))
-        .for_each(|((out, points), weights)| {
-            for ((value, taps), tap_weights) in out.iter_mut().zip(points).zip(weights) {
+        .for_each(|(((chunk, out), points), weights)| {
+            let skipped = skipped.get(chunk * 4096..).unwrap_or(&[]);
+            for (index, ((value, taps), tap_weights)) in
+                out.iter_mut().zip(points).zip(weights).enumerate()
+            {
+                if skipped.get(index) == Some(&true) {
+                    continue;
+                }
                 let mut sum = relight_core::Rgb::ZERO;
                 for tap in 0..TAPS {
                     sum += values[taps[tap] as usize] * (tap_weights[tap] as f32 * SCALE);

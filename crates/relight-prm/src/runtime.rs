@@ -35,7 +35,12 @@ pub struct Prm {
     /// From the pane points to every receiver (empty when they are all).
     upsampling: Upsampling,
     receiver_values: Vec<Rgb>,
-    lightmap: Vec<Rgb>,
+    /// The receiver each lightmap texel shows: shading reads
+    /// `receiver_values` through it, so no frame builds a lightmap.
+    shown_receiver: Vec<u32>,
+    /// Per receiver, whether the final gather writes its light: once it
+    /// has gathered, nothing reads the upsampled value there.
+    gathered_receivers: Vec<bool>,
     timings: StageTimings,
     /// What the last update read, to skip a frame that repeats it.
     last_frame: LastFrame,
@@ -153,7 +158,8 @@ impl Prm {
             receiver_values: vec![Rgb::ZERO; receivers],
             pane_values,
             upsampling,
-            lightmap: vec![Rgb::ZERO; (context.atlas.width * context.atlas.height) as usize],
+            shown_receiver: context.atlas.dilated_receiver_of_texel(),
+            gathered_receivers: final_gather.replaces(receivers),
             bake,
             top_k,
             timings: StageTimings::default(),
@@ -365,8 +371,16 @@ impl Technique for Prm {
         });
         if !self.pane_values.is_empty() {
             let (upsampling, pane_values) = (&self.upsampling, &self.pane_values);
+            // The gather's hits on gathering receivers reflect its last
+            // values, so after the first gather the upsampled values there
+            // would be written over unread.
+            let skipped: &[bool] = if self.final_gather.has_gathered() {
+                &self.gathered_receivers
+            } else {
+                &[]
+            };
             self.timings.time("upsampling", || {
-                upsample(upsampling, pane_values, receiver_values)
+                upsample(upsampling, pane_values, skipped, receiver_values)
             });
         }
         let final_gather = &mut self.final_gather;
@@ -381,10 +395,6 @@ impl Technique for Prm {
             final_gather.apply(receiver_values);
             final_gather.push_stages(&mut self.timings, start.elapsed());
         }
-        let lightmap = &mut self.lightmap;
-        self.timings.time("dilation", || {
-            context.atlas.scatter_into(receiver_values, lightmap);
-        });
         // The panes answer the lights at once; the first update gathers
         // until its near field settles, a later one once.
         let first = !std::mem::replace(&mut self.updated, true);
@@ -409,9 +419,12 @@ impl Technique for Prm {
     }
 
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        self.context
-            .atlas
-            .sample(&self.lightmap, point.triangle, point.barycentric)
+        self.context.atlas.sample_receivers(
+            &self.shown_receiver,
+            &self.receiver_values,
+            point.triangle,
+            point.barycentric,
+        )
     }
 
     fn indirect_irradiance_in_space(&self, position: Vec3, normal: Vec3) -> Rgb {
@@ -459,7 +472,7 @@ impl Technique for Prm {
             ),
             MemoryEntry::new("clusters", bake.cluster_count * (12 * 4)),
             MemoryEntry::new("receiver irradiance", self.receiver_values.len() * 12),
-            MemoryEntry::new("lightmap", self.lightmap.len() * 12),
+            MemoryEntry::new("lightmap texels' receivers", self.shown_receiver.len() * 4),
         ];
         entries.extend(self.final_gather.memory_entry());
         entries

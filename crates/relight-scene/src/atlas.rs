@@ -659,6 +659,30 @@ impl Atlas {
         top.lerp(bottom, fy)
     }
 
+    /// [`Atlas::sample`] of the lightmap that [`Self::scatter_into`] would
+    /// make from `per_receiver`, read through `shown_receiver` (from
+    /// [`Self::dilated_receiver_of_texel`]) instead: the same four texels
+    /// and the same lerps, so the same bits, without scattering and
+    /// dilating a full map every frame for lookups that read a few texels.
+    #[inline]
+    pub fn sample_receivers(
+        &self,
+        shown_receiver: &[u32],
+        per_receiver: &[Rgb],
+        triangle: u32,
+        barycentric: Vec2,
+    ) -> Rgb {
+        let ([upper_left, upper_right, lower_left, lower_right], fx, fy) =
+            self.bilinear_footprint(triangle, barycentric);
+        let value = |texel: usize| match shown_receiver[texel] {
+            EMPTY => Rgb::ZERO,
+            receiver => per_receiver[receiver as usize],
+        };
+        let top = value(upper_left).lerp(value(upper_right), fx);
+        let bottom = value(lower_left).lerp(value(lower_right), fx);
+        top.lerp(bottom, fy)
+    }
+
     /// [`Atlas::sample`] of a packed lightmap, the four texels decoded and
     /// weighted together (4-wide on x86-64). `texel_value` gives a texel's
     /// packed value: a plain lightmap indexes itself, a lightmap kept as
@@ -1638,6 +1662,40 @@ mod tests {
                     (value.x - expected).abs() < 1e-5,
                     "triangle {triangle} at {barycentric}: {value}"
                 );
+            }
+        }
+    }
+
+    /// Lookups through the shown receivers read the same bits as lookups
+    /// of the scattered, dilated map, in gutters, at filled hidden texels
+    /// and on texels that show nothing.
+    #[test]
+    fn receiver_lookups_equal_lookups_of_the_scattered_map() {
+        let scene = quad_scene(1.0);
+        let mut atlas = Atlas::build(&scene, TexelDensity::MetresPerTexel(0.1)).unwrap();
+        // Make one covered texel show its neighbour, as under an object.
+        let [x, y] = atlas.receivers.texels[5];
+        let [sx, sy] = atlas.receivers.texels[6];
+        atlas.fill_hidden(vec![(y * atlas.width + x, sy * atlas.width + sx)]);
+        let values: Vec<Rgb> = (0..atlas.receivers.len())
+            .map(|r| Rgb::new(r as f32 * 0.37, 1.0 / (1.0 + r as f32), (r % 7) as f32))
+            .collect();
+        let lightmap = atlas.to_lightmap(&values);
+        let shown = atlas.dilated_receiver_of_texel();
+        let steps = 40;
+        for triangle in 0..scene.mesh.triangles.len() as u32 {
+            // Barycentrics past the triangle reach texels beyond the gutter.
+            for i in -5..=steps + 5 {
+                for j in -5..=steps + 5 {
+                    let barycentric = Vec2::new(i as f32, j as f32) / steps as f32;
+                    let expected = atlas.sample(&lightmap, triangle, barycentric);
+                    let value = atlas.sample_receivers(&shown, &values, triangle, barycentric);
+                    assert_eq!(
+                        value.to_array().map(f32::to_bits),
+                        expected.to_array().map(f32::to_bits),
+                        "{triangle} {barycentric}"
+                    );
+                }
             }
         }
     }

@@ -600,6 +600,28 @@ impl FinalGather {
         &self.receivers
     }
 
+    /// Per receiver of a `receiver_count`-receiver atlas, whether the
+    /// gather writes its light: a technique can skip its own value there
+    /// wherever nothing reads it before [`Self::apply`]. Empty when the
+    /// gather is off.
+    pub fn replaces(&self, receiver_count: usize) -> Vec<bool> {
+        if self.receivers.is_empty() {
+            return Vec::new();
+        }
+        let mut replaced = vec![false; receiver_count];
+        for &receiver in &self.receivers {
+            replaced[receiver as usize] = true;
+        }
+        replaced
+    }
+
+    /// Whether a gather has run: from then on, a gather whose hits reflect
+    /// indirect light and that keeps no correction map reads the last
+    /// gather's values at gathering receivers, nothing of the technique's.
+    pub fn has_gathered(&self) -> bool {
+        self.gathered
+    }
+
     /// The last update's indirect light of each of [`Self::receivers`].
     pub fn values(&self) -> &[Rgb] {
         &self.values
