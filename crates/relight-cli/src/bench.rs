@@ -56,6 +56,10 @@ pub struct BenchReport {
     pub skipped_frames: u32,
     /// The frames after the orbit, with the lights at rest.
     pub rest: Option<RestReport>,
+    /// Under `--set update_budget=S` (S below 1): how far each budgeted
+    /// frame's receiver light is from an unbudgeted twin's at the same
+    /// lights.
+    pub budget: Option<BudgetReport>,
     pub memory: Vec<(String, usize)>,
     pub memory_total_bytes: usize,
 }
@@ -83,6 +87,48 @@ pub struct RestReport {
     /// The update's time on camera-moving frames it ran (view-dependent
     /// light), if any.
     pub camera_moving: Option<StageReport>,
+}
+
+/// The error an update budget costs, against the same technique without
+/// one updated with the same frames (relative RMSE over every receiver's
+/// indirect light, in per cent).
+#[derive(Serialize)]
+pub struct BudgetReport {
+    /// The parameter as given.
+    pub update_budget: String,
+    /// Over the orbit's timed frames, lights moving every frame.
+    pub moving_median_percent: f64,
+    pub moving_p95_percent: f64,
+    pub moving_worst_percent: f64,
+    /// For scale: the unbudgeted light one frame late (the last frame's
+    /// against this one's), median over the same frames. A budget whose
+    /// error is below this costs less than one frame of latency.
+    pub one_frame_late_median_percent: f64,
+    /// After the orbit, per still frame (the first is the first update
+    /// with the lights at rest).
+    pub at_rest_percent: Vec<f64>,
+    /// Still frames until the error is under 1 % and stays there (1: from
+    /// the first), if it gets there.
+    pub frames_to_one_percent: Option<u32>,
+}
+
+/// The twin a budget is measured against.
+pub struct Unbudgeted {
+    pub technique: Box<dyn Technique>,
+    pub update_budget: String,
+}
+
+/// Per cent relative RMSE of the two techniques' receiver light.
+fn budget_error(budgeted: &dyn Technique, unbudgeted: &dyn Technique) -> f64 {
+    match (
+        budgeted.receiver_irradiance(),
+        unbudgeted.receiver_irradiance(),
+    ) {
+        (Some(values), Some(truth)) => {
+            100.0 * relight_render::metrics::error_norms(values, truth).relative_rmse
+        }
+        _ => 0.0,
+    }
 }
 
 fn percentile(sorted: &[f64], fraction: f64) -> f64 {
@@ -181,6 +227,7 @@ pub struct BenchSettings {
 pub fn run(
     context: &SceneContext,
     technique: &mut dyn Technique,
+    mut unbudgeted: Option<Unbudgeted>,
     settings: BenchSettings,
     progress: &dyn Progress,
 ) -> Result<BenchReport> {
@@ -216,23 +263,42 @@ pub fn run(
     let mut volume_samples = Vec::new();
     let mut first_update = (0.0, 0);
     let mut skipped_frames = 0;
+    let mut moving_errors = Vec::new();
+    let (mut late_errors, mut last_unbudgeted) = (Vec::new(), Vec::<Rgb>::new());
     progress.start("bench", (frames + WARM_UP_FRAMES + 2 * rest_frames) as u64);
     for index in 0..frames + WARM_UP_FRAMES {
         let lights = relight_engine::orbit(base, centre, index, frames);
         if !pause.is_zero() {
             std::thread::sleep(pause);
         }
-        technique.update(&Frame {
+        let frame = Frame {
             lights: &lights,
             index: index as u64,
             camera: None,
             moving_mesh_poses: None,
-        })?;
+        };
+        technique.update(&frame)?;
         progress.advance(1);
         let timings = technique.timings();
         if index == 0 {
             first_update = (timings.total().as_secs_f64() * 1e3, timings.feedback_passes);
         }
+        // Untimed: the twin updates after the timings are read.
+        if let Some(twin) = &mut unbudgeted {
+            twin.technique.update(&frame)?;
+            if index >= WARM_UP_FRAMES {
+                moving_errors.push(budget_error(&*technique, &*twin.technique));
+            }
+            if let Some(values) = twin.technique.receiver_irradiance() {
+                if index >= WARM_UP_FRAMES {
+                    let late = relight_render::metrics::error_norms(&last_unbudgeted, values);
+                    late_errors.push(100.0 * late.relative_rmse);
+                }
+                last_unbudgeted.clear();
+                last_unbudgeted.extend_from_slice(values);
+            }
+        }
+        let timings = technique.timings();
         if index < WARM_UP_FRAMES {
             continue;
         }
@@ -269,11 +335,17 @@ pub fn run(
         }
     }
     let last_lights = relight_engine::orbit(base, centre, frames + WARM_UP_FRAMES - 1, frames);
+    let mut at_rest_errors = Vec::new();
     let rest = (rest_frames > 0)
         .then(|| {
             rest_frames_report(
                 context,
                 technique,
+                match unbudgeted.as_mut() {
+                    Some(twin) => Some(twin.technique.as_mut() as &mut dyn Technique),
+                    None => None,
+                },
+                &mut at_rest_errors,
                 &last_lights,
                 frames,
                 rest_frames,
@@ -281,6 +353,26 @@ pub fn run(
             )
         })
         .transpose()?;
+    let budget = unbudgeted.map(|twin| {
+        let mut sorted = moving_errors.clone();
+        sorted.sort_by(f64::total_cmp);
+        late_errors.sort_by(f64::total_cmp);
+        let frames_to_one_percent = match at_rest_errors.iter().rposition(|&error| error >= 1.0) {
+            None if at_rest_errors.is_empty() => None,
+            None => Some(1),
+            Some(last) if last + 1 < at_rest_errors.len() => Some(last as u32 + 2),
+            Some(_) => None,
+        };
+        BudgetReport {
+            update_budget: twin.update_budget,
+            moving_median_percent: percentile(&sorted, 0.5),
+            moving_p95_percent: percentile(&sorted, 0.95),
+            moving_worst_percent: sorted.last().copied().unwrap_or(0.0),
+            one_frame_late_median_percent: percentile(&late_errors, 0.5),
+            at_rest_percent: at_rest_errors,
+            frames_to_one_percent,
+        }
+    });
     progress.finish();
     let memory: Vec<(String, usize)> = technique
         .memory()
@@ -322,6 +414,7 @@ pub fn run(
         }),
         skipped_frames,
         rest,
+        budget,
         memory_total_bytes: memory.iter().map(|(_, bytes)| bytes).sum(),
         memory,
     })
@@ -330,9 +423,12 @@ pub fn run(
 /// Runs `rest_frames` frames with `lights` still and the scene's camera,
 /// then as many turning the camera about its target, numbered on from the
 /// orbit's last frame.
+#[allow(clippy::too_many_arguments)]
 fn rest_frames_report(
     context: &SceneContext,
     technique: &mut dyn Technique,
+    mut unbudgeted: Option<&mut dyn Technique>,
+    still_errors: &mut Vec<f64>,
     lights: &[Light],
     orbit_frames: u32,
     rest_frames: u32,
@@ -361,17 +457,24 @@ fn rest_frames_report(
             let turn = glam::Quat::from_rotation_y(angle);
             camera.eye = scene_camera.target + turn * (scene_camera.eye - scene_camera.target);
         }
-        let start = std::time::Instant::now();
-        technique.update(&Frame {
+        let frame = Frame {
             lights,
             index: u64::from(orbit_frames + WARM_UP_FRAMES + rest_index),
             // The orbit's frames give no camera (the scene's): so do the
             // still ones.
             camera: moving_camera.then_some(&camera),
             moving_mesh_poses: None,
-        })?;
+        };
+        let start = std::time::Instant::now();
+        technique.update(&frame)?;
         let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
         progress.advance(1);
+        if let Some(twin) = unbudgeted.as_deref_mut() {
+            twin.update(&frame)?;
+            if !moving_camera {
+                still_errors.push(budget_error(&*technique, &*twin));
+            }
+        }
         let timings = technique.timings();
         if timings.skipped {
             settling = false;
@@ -449,6 +552,9 @@ impl fmt::Display for BenchReport {
         if let Some(rest) = &self.rest {
             writeln!(f, "{rest}")?;
         }
+        if let Some(budget) = &self.budget {
+            writeln!(f, "{budget}")?;
+        }
         writeln!(f, "{:<28} {:>12}", "buffer", "bytes")?;
         for (buffer, bytes) in &self.memory {
             writeln!(f, "{buffer:<28} {bytes:>12}")?;
@@ -488,6 +594,39 @@ impl fmt::Display for RestReport {
             )?;
         }
         Ok(())
+    }
+}
+
+impl fmt::Display for BudgetReport {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "update_budget={} against an unbudgeted twin (relative RMSE of the receivers' light):",
+            self.update_budget
+        )?;
+        writeln!(
+            f,
+            "  lights moving: median {:.2} %, p95 {:.2} %, worst {:.2} % (unbudgeted one frame late: median {:.2} %)",
+            self.moving_median_percent,
+            self.moving_p95_percent,
+            self.moving_worst_percent,
+            self.one_frame_late_median_percent
+        )?;
+        let curve: Vec<String> = self
+            .at_rest_percent
+            .iter()
+            .map(|error| format!("{error:.2}"))
+            .collect();
+        write!(
+            f,
+            "  lights at rest, per still frame: {} %",
+            curve.join(" ")
+        )?;
+        match self.frames_to_one_percent {
+            Some(frames) => write!(f, "\n  under 1 % from still frame {frames} on"),
+            None if self.at_rest_percent.is_empty() => Ok(()),
+            None => write!(f, "\n  not under 1 % by the last still frame"),
+        }
     }
 }
 

@@ -745,9 +745,38 @@ fn run(cli: Cli) -> Result<()> {
             }
             let context = load_context(&scene, &options, quiet)?;
             let mut instance = create_technique(&context, &technique, quiet)?;
+            // A budget's error is measured against the same technique
+            // without one, fed the same frames.
+            let pairs = technique.pairs()?;
+            let budget = pairs
+                .iter()
+                .rev()
+                .find(|(key, _)| key == "update_budget")
+                .map(|(_, value)| value.clone())
+                .filter(|value| value.trim().parse::<f32>() != Ok(1.0));
+            let unbudgeted = match budget {
+                Some(update_budget) => {
+                    let pairs: Vec<(String, String)> = pairs
+                        .into_iter()
+                        .filter(|(key, _)| key != "update_budget")
+                        .collect();
+                    Some(bench::Unbudgeted {
+                        technique: relight_engine::open_technique(
+                            &context,
+                            &technique.technique,
+                            &pairs,
+                            technique.bake.as_deref(),
+                            &Bars::new(quiet),
+                        )?,
+                        update_budget,
+                    })
+                }
+                None => None,
+            };
             let report = bench::run(
                 &context,
                 instance.as_mut(),
+                unbudgeted,
                 bench::BenchSettings {
                     frames,
                     shading_resolution,

@@ -187,6 +187,65 @@ fn bench_writes_json_with_stages() {
     assert!(shaded > 320 * 240 / 2 && shaded <= 320 * 240, "{shaded}");
 }
 
+/// Under half a budget the bench measures against an unbudgeted twin:
+/// once the lights rest, the budgeted light equals the twin's within
+/// 2 / 0.5 - 1 = 3 still frames (LightSkin, one bounce: exactly, as the
+/// gather's own test shows), and an invalid share is refused by name.
+#[test]
+fn bench_measures_a_budget_against_an_unbudgeted_twin() {
+    let folder = tempfile::tempdir().unwrap();
+    let json = folder.path().join("bench.json");
+    let args = [
+        "bench",
+        "-q",
+        "--technique",
+        "lightskin",
+        "--frames",
+        "6",
+        "--rest-frames",
+        "6",
+        "--shading-resolution",
+        "0x0",
+        "--volume-cells",
+        "0",
+    ];
+    let text = run_ok(
+        relight()
+            .args(args)
+            .args(["--set", "update_budget=0.5", "--json"])
+            .arg(&json)
+            .arg(scene("two-rooms")),
+    );
+    assert!(
+        text.contains("update_budget=0.5 against an unbudgeted twin"),
+        "{text}"
+    );
+    let value: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let budget = &value["budget"];
+    assert_eq!(budget["update_budget"], "0.5");
+    let at_rest: Vec<f64> = budget["at_rest_percent"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|error| error.as_f64().unwrap())
+        .collect();
+    assert_eq!(at_rest.len(), 6);
+    assert!(
+        budget["frames_to_one_percent"].as_u64().unwrap() <= 3,
+        "{budget}"
+    );
+    assert_eq!(*at_rest.last().unwrap(), 0.0, "{budget}");
+    assert_eq!(value["rest"]["settled"], true);
+    let error = run_err(
+        relight()
+            .args(args)
+            .args(["--set", "update_budget=0"])
+            .arg(scene("two-rooms")),
+    );
+    assert!(error.contains("update_budget"), "{error}");
+}
+
 #[test]
 fn bench_shading_resolution_is_checked() {
     let error = run_err(

@@ -54,6 +54,7 @@
 //! | `space_rays` | 64 | gather rays per point in space |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the sparse points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
+//! | `update_budget` | 1 | the share of the final gather's work an update after the first does: the direct light of that share of its hit points (Morton order) and the sums of that share of its receivers, the rest keeping the last update's; 1 = all of it every update. Once the lights rest the light equals the unbudgeted within 2 / `update_budget` - 1 updates (run time) |
 //! | `seed` | 1 | rotation of the sparse points' Halton candidates |
 //!
 //! The scene file may set any of these under `[lightskin]`; `--set` wins.
@@ -229,6 +230,7 @@ pub struct LightSkinParams {
     pub space_rays: u32,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
+    pub update_budget: f32,
     pub seed: u64,
 }
 
@@ -251,6 +253,7 @@ impl Default for LightSkinParams {
             space_rays: 64,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
+            update_budget: 1.0,
             seed: 1,
         }
     }
@@ -258,7 +261,8 @@ impl Default for LightSkinParams {
 
 impl LightSkinParams {
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
-        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)
+        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
+            .with_update_budget(self.update_budget)
     }
 
     fn validate(&self) -> Result<(), TechniqueError> {
@@ -1220,6 +1224,12 @@ impl Technique for LightSkin {
         self.last_frame.forget();
     }
 
+    /// One bounce settles in one update, but under `update_budget` the
+    /// final gather's parts still to refresh change the light.
+    fn settled(&self) -> bool {
+        self.final_gather.refreshed()
+    }
+
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let start = std::time::Instant::now();
         let poses = self.moving_mesh_poses(frame)?;
@@ -1230,7 +1240,8 @@ impl Technique for LightSkin {
             camera: !self.glossy_sums.is_empty(),
             moving_meshes: !self.dynamic_meshes.is_empty(),
         };
-        if self.last_frame.repeats(frame, reads) {
+        let repeated = self.last_frame.repeats(frame, reads);
+        if repeated && self.final_gather.refreshed() {
             self.timings.skip(start);
             return Ok(());
         }

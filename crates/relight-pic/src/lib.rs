@@ -63,6 +63,7 @@
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the lightmap caches over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
 //! | `final_gather_min_rays` | 64 (`high`: 256) | the automatic ray count's floor, which large scenes get: Sponza's 180k gathering receivers get it (see below) (run time) |
+//! | `update_budget` | 1 | the share of the final gather's work an update after the first does: the direct light of that share of its hit points (Morton order) and the sums of that share of its receivers, the rest keeping the last update's; 1 = all of it every update. Once the lights rest the light equals the unbudgeted within 2 / `update_budget` - 1 updates (run time) |
 //! | `seed` | 1 | |
 //!
 //! Known limits and choices:
@@ -301,6 +302,7 @@ pub struct PicParams {
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
     pub final_gather_min_rays: u32,
+    pub update_budget: f32,
     pub seed: u64,
 }
 
@@ -334,6 +336,7 @@ impl Default for PicParams {
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
             final_gather_min_rays: 64,
+            update_budget: 1.0,
             seed: 1,
         }
     }
@@ -456,7 +459,8 @@ impl PicParams {
 
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
         FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
-            .with_least_rays(self.final_gather_min_rays)
+            .with_least_rays(self.final_gather_min_rays)?
+            .with_update_budget(self.update_budget)
     }
 
     pub fn runtime(&self) -> RuntimeSettings {

@@ -44,6 +44,7 @@
 //! | `space_rays` | 64 | gather rays per point in space (run time) |
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the entry points over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, 64 to 1024 each (run time) |
+//! | `update_budget` | 1 | the share of the final gather's work an update after the first does: the direct light of that share of its hit points (Morton order) and the sums of that share of its receivers, the rest keeping the last update's; 1 = all of it every update. Once the lights rest the light equals the unbudgeted within 2 / `update_budget` - 1 updates (run time) |
 //! | `seed` | 1 | |
 //!
 //! Why compression and all clusters by default: the per-frame cost is the
@@ -254,6 +255,7 @@ pub struct PrmParams {
     pub space_rays: u32,
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
+    pub update_budget: f32,
     pub seed: u64,
 }
 
@@ -274,6 +276,7 @@ impl Default for PrmParams {
             space_rays: 64,
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
+            update_budget: 1.0,
             seed: 1,
         }
     }
@@ -281,7 +284,8 @@ impl Default for PrmParams {
 
 impl PrmParams {
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
-        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)
+        FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
+            .with_update_budget(self.update_budget)
     }
 
     /// Metres between pane points; at or below the lightmap's texel every

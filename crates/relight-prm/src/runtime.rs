@@ -284,7 +284,7 @@ impl Technique for Prm {
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let start = std::time::Instant::now();
         let repeated = self.last_frame.repeats(frame, FrameReads::default());
-        if repeated && self.settled {
+        if repeated && self.settled() {
             self.timings.skip(start);
             return Ok(());
         }
@@ -411,7 +411,9 @@ impl Technique for Prm {
     }
 
     fn settled(&self) -> bool {
-        self.settled
+        // Under `update_budget` the gather's parts still to refresh change
+        // the light too.
+        self.settled && self.final_gather.refreshed()
     }
 
     fn forget_last_frame(&mut self) {

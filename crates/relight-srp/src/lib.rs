@@ -67,6 +67,7 @@
 //! | `final_gather` | `auto` | receivers nearer other geometry than this many lightmap texels gather their near field by tracing (see below): `auto` = the spacing of the probes over the lightmap, 0 = off (the paper's method), `inf` = every receiver that sees geometry (run time) |
 //! | `final_gather_rays` | 0 | rays per gathering receiver; 0 = automatic: 2^23 rays a frame shared by the gathering receivers, `final_gather_min_rays` to 1024 each (run time) |
 //! | `final_gather_min_rays` | 128 | the automatic ray count's floor, which large scenes get: Sponza's 260k gathering receivers get it (see below) (run time) |
+//! | `update_budget` | 1 | the share of the final gather's work an update after the first does: the direct light of that share of its hit points (Morton order) and the sums of that share of its receivers, the rest keeping the last update's; 1 = all of it every update. Once the lights rest the light equals the unbudgeted within 2 / `update_budget` - 1 updates (run time) |
 //! | `gather_feedback` | true | with bounces, the final gather's values, where a texel gathers, feed the next bounce instead of the probes' reconstruction there; false: the reconstruction alone (the paper) (run time) |
 //! | `seed` | 1 | |
 //!
@@ -257,6 +258,7 @@ pub struct SrpParams {
     pub final_gather: GatherReach,
     pub final_gather_rays: u32,
     pub final_gather_min_rays: u32,
+    pub update_budget: f32,
     pub gather_feedback: bool,
     pub seed: u64,
 }
@@ -288,6 +290,7 @@ impl Default for SrpParams {
             final_gather: GatherReach::default(),
             final_gather_rays: 0,
             final_gather_min_rays: 128,
+            update_budget: 1.0,
             gather_feedback: true,
             seed: 1,
         }
@@ -373,7 +376,8 @@ impl SrpParams {
 
     fn final_gather_settings(&self) -> Result<FinalGatherSettings, String> {
         FinalGatherSettings::from_params(&self.final_gather, self.final_gather_rays)?
-            .with_least_rays(self.final_gather_min_rays)
+            .with_least_rays(self.final_gather_min_rays)?
+            .with_update_budget(self.update_budget)
     }
 }
 

@@ -888,7 +888,7 @@ impl Technique for Srp {
     fn update(&mut self, frame: &Frame) -> Result<(), TechniqueError> {
         let start = std::time::Instant::now();
         let repeated = self.last_frame.repeats(frame, FrameReads::default());
-        if repeated && self.settled {
+        if repeated && self.settled() {
             self.timings.skip(start);
             return Ok(());
         }
@@ -957,7 +957,9 @@ impl Technique for Srp {
     }
 
     fn settled(&self) -> bool {
-        self.settled
+        // Under `update_budget` the gather's parts still to refresh change
+        // the light too.
+        self.settled && self.final_gather.refreshed()
     }
 
     fn forget_last_frame(&mut self) {

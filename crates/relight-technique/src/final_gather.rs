@@ -270,6 +270,11 @@ pub struct FinalGatherSettings {
     /// The automatic count's floor: 64, or more where a quality preset
     /// pays for less gather noise on large scenes.
     pub least_rays: u32,
+    /// The share of the gather's per-frame work an update after the first
+    /// does (parameter `update_budget`, in (0, 1]): the direct light of
+    /// that share of the hit points, in Morton order, and the sums of that
+    /// share of the gathering receivers; the rest keep the light they had.
+    pub update_share: f32,
 }
 
 fn reach_problem(given: &str) -> String {
@@ -296,6 +301,7 @@ impl FinalGatherSettings {
         reach_texels: Some(0.0),
         rays: 1,
         least_rays: LEAST_RAYS,
+        update_share: 1.0,
     };
 
     /// The settings from the parameters `final_gather` and
@@ -317,6 +323,24 @@ impl FinalGatherSettings {
             reach_texels,
             rays,
             least_rays: LEAST_RAYS,
+            update_share: 1.0,
+        })
+    }
+
+    /// The same with [`Self::update_share`] from the parameter
+    /// `update_budget`, or what is wrong with it. A share of the work, not
+    /// a time: the same frames then give the same light on any machine and
+    /// thread count, and a time budget follows from the stage times that
+    /// `relight bench` prints.
+    pub fn with_update_budget(self, update_budget: f32) -> Result<Self, String> {
+        if !(update_budget > 0.0 && update_budget <= 1.0) {
+            return Err(format!(
+                "update_budget must be a share of the final gather's work per frame, above 0 and at most 1 (1: all of it every frame), got {update_budget}"
+            ));
+        }
+        Ok(Self {
+            update_share: update_budget,
+            ..self
         })
     }
 
@@ -385,6 +409,64 @@ pub struct FinalGather {
     /// The atlas's dilation pairs for the gathering receivers' texels, the
     /// only ones the correction map is not zero at.
     correction_dilation: Vec<(u32, u32)>,
+    /// Which part of the work this update does under `update_budget`.
+    refresh: Refresh,
+}
+
+/// The parts of the gather an update refreshes under a budget: a range of
+/// the hit slots (Morton order, so a range is a few compact regions and
+/// its shadow rays share occluders) and a range of the gathering
+/// receivers (atlas order), each moving on by its length every update and
+/// wrapping around.
+#[derive(Clone, Debug, Default)]
+struct Refresh {
+    slots_per_update: usize,
+    rows_per_update: usize,
+    next_slot: usize,
+    next_row: usize,
+    /// This update's ranges start here; `partial` is false while every
+    /// slot and row is refreshed (the first update, or no budget).
+    slot_start: usize,
+    row_start: usize,
+    partial: bool,
+    lit_once: bool,
+    /// The last update's lights, and how many updates have seen them
+    /// since they last changed (the first that did counts as 0).
+    lights: Vec<Light>,
+    updates_at_rest: usize,
+    /// Whether every hit point and then every receiver has been refreshed
+    /// under these lights.
+    current: bool,
+}
+
+impl Refresh {
+    fn new(share: f32, slots: usize, rows: usize) -> Self {
+        let per_update =
+            |count: usize| ((count as f64 * share as f64).ceil() as usize).clamp(1, count.max(1));
+        Self {
+            slots_per_update: per_update(slots),
+            rows_per_update: per_update(rows),
+            ..Self::default()
+        }
+    }
+
+    /// Updates that cover every slot, and every row.
+    fn cycles(&self, slots: usize, rows: usize) -> (usize, usize) {
+        (
+            slots.div_ceil(self.slots_per_update.max(1)),
+            rows.div_ceil(self.rows_per_update.max(1)),
+        )
+    }
+}
+
+/// `count` indices from `start` in `0..total`, wrapping: one range or two.
+fn wrapping_ranges(start: usize, count: usize, total: usize) -> [std::ops::Range<usize>; 2] {
+    let end = start + count.min(total);
+    if end <= total {
+        [start..end, 0..0]
+    } else {
+        [start..total, 0..end - total]
+    }
 }
 
 impl FinalGather {
@@ -563,6 +645,7 @@ impl FinalGather {
         } else {
             0
         };
+        let gathering_count = gathering.len();
         Self {
             correction_map: vec![Rgb::ZERO; map_size],
             changes: vec![Rgb::ZERO; if map_size > 0 { gathering.len() } else { 0 }],
@@ -588,6 +671,7 @@ impl FinalGather {
             slot_static,
             slot_direct: vec![Rgb::ZERO; slots],
             slot_radiosity: vec![Vec3A::ZERO; slots],
+            refresh: Refresh::new(settings.update_share, slots, gathering_count),
         }
     }
 
@@ -620,6 +704,15 @@ impl FinalGather {
     /// gather's values at gathering receivers, nothing of the technique's.
     pub fn has_gathered(&self) -> bool {
         self.gathered
+    }
+
+    /// Whether every hit point's light and every gathering receiver's sum
+    /// have been refreshed under the current lights: always without a
+    /// budget; under one, once the updates since the lights last changed
+    /// have covered every hit point and then every gathering receiver. A
+    /// technique skips a repeated frame only once this holds.
+    pub fn refreshed(&self) -> bool {
+        self.receivers.is_empty() || self.refresh.current
     }
 
     /// The last update's indirect light of each of [`Self::receivers`].
@@ -663,15 +756,90 @@ impl FinalGather {
             return;
         }
         let start = Instant::now();
-        self.slot_static.irradiance_batch_over_footprints(
-            &context.direct(),
-            lights,
-            &self.slot_positions,
-            &self.slot_normals,
-            Footprints::Each(&self.slot_areas),
-            &mut self.slot_direct,
-        );
+        self.begin_refresh(lights);
+        let direct = context.direct();
+        if !self.refresh.partial {
+            self.slot_static.irradiance_batch_over_footprints(
+                &direct,
+                lights,
+                &self.slot_positions,
+                &self.slot_normals,
+                Footprints::Each(&self.slot_areas),
+                &mut self.slot_direct,
+            );
+        } else {
+            let ranges = self.slot_ranges();
+            let fixed = self
+                .slot_static
+                .at(&direct, &self.slot_positions, &self.slot_normals);
+            for range in ranges {
+                // A point's punctual light is the same whatever batch it
+                // is in, so a part gives the bits the whole would.
+                direct.irradiance_batch_over_footprints(
+                    lights,
+                    &self.slot_positions[range.clone()],
+                    &self.slot_normals[range.clone()],
+                    Footprints::Each(&self.slot_areas[range.clone()]),
+                    fixed.map(|fixed| &fixed[range.clone()]),
+                    &mut self.slot_direct[range],
+                );
+            }
+        }
         self.hit_lighting_time += start.elapsed();
+    }
+
+    /// Chooses this update's part of the work (all of it on the first
+    /// update and without a budget) and counts the updates since the
+    /// lights changed.
+    fn begin_refresh(&mut self, lights: &[Light]) {
+        let (slots, rows) = (self.slot_direct.len(), self.receivers.len());
+        let refresh = &mut self.refresh;
+        let changed = refresh.lights.as_slice() != lights;
+        if changed {
+            refresh.lights.clear();
+            refresh.lights.extend_from_slice(lights);
+            refresh.updates_at_rest = 0;
+        } else {
+            refresh.updates_at_rest += 1;
+        }
+        refresh.partial = refresh.lit_once
+            && (refresh.slots_per_update < slots || refresh.rows_per_update < rows);
+        refresh.lit_once = true;
+        // A receiver summed before the last of its hits was relit under
+        // these lights is stale: the slots take one cycle of updates, and
+        // the receivers one more from the update that relit the last slot.
+        let (slot_cycle, row_cycle) = refresh.cycles(slots, rows);
+        refresh.current = !refresh.partial
+            || (!changed
+                && (refresh.current || refresh.updates_at_rest + 2 >= slot_cycle + row_cycle));
+        if refresh.partial {
+            refresh.slot_start = refresh.next_slot;
+            refresh.row_start = refresh.next_row;
+            refresh.next_slot = (refresh.next_slot + refresh.slots_per_update) % slots.max(1);
+            refresh.next_row = (refresh.next_row + refresh.rows_per_update) % rows.max(1);
+        }
+    }
+
+    /// The slots this update refreshes.
+    fn slot_ranges(&self) -> [std::ops::Range<usize>; 2] {
+        let slots = self.slot_direct.len();
+        if !self.refresh.partial {
+            return [0..slots, 0..0];
+        }
+        wrapping_ranges(
+            self.refresh.slot_start,
+            self.refresh.slots_per_update,
+            slots,
+        )
+    }
+
+    /// The gathering receivers (rows) this update sums.
+    fn row_ranges(&self) -> [std::ops::Range<usize>; 2] {
+        let rows = self.receivers.len();
+        if !self.refresh.partial {
+            return [0..rows, 0..0];
+        }
+        wrapping_ranges(self.refresh.row_start, self.refresh.rows_per_update, rows)
     }
 
     /// Records `total`, the time a frame spent on the gather, as two
@@ -717,46 +885,60 @@ impl FinalGather {
             .then_some((&self.slot_gathering, &self.values));
         // The lightmap holds front sides only: a back side reflects its
         // direct light alone, as the points-in-space gather does.
-        self.slot_radiosity
-            .par_iter_mut()
-            .with_min_len(RECEIVERS_PER_TASK)
-            .enumerate()
-            .for_each(|(slot, radiosity)| {
-                let mut irradiance = direct[slot];
-                if hits_reflect_indirect && !back[slot] {
-                    irradiance += match gathered {
-                        Some((gathering, values)) if gathering[slot] != MISS => {
-                            values[gathering[slot] as usize]
-                        }
-                        _ => indirect_at(receivers[slot]),
-                    };
-                }
-                *radiosity = (albedos[slot] * irradiance).into();
-            });
-        // pdf cos / pi against the integrand L cos with L = albedo E / pi.
-        self.hits.mean_into(
-            &self.slot_radiosity,
-            1.0 / self.rays as f32,
-            &mut self.values,
-        );
-        self.explicit
-            .add_into(&self.slot_radiosity, &mut self.values);
+        let radiosity_of = |slot: usize| -> Vec3A {
+            let mut irradiance = direct[slot];
+            if hits_reflect_indirect && !back[slot] {
+                irradiance += match gathered {
+                    Some((gathering, values)) if gathering[slot] != MISS => {
+                        values[gathering[slot] as usize]
+                    }
+                    _ => indirect_at(receivers[slot]),
+                };
+            }
+            (albedos[slot] * irradiance).into()
+        };
+        let (slot_ranges, row_ranges) = (self.slot_ranges(), self.row_ranges());
+        for range in slot_ranges {
+            let start = range.start;
+            self.slot_radiosity[range]
+                .par_iter_mut()
+                .with_min_len(RECEIVERS_PER_TASK)
+                .enumerate()
+                .for_each(|(offset, radiosity)| *radiosity = radiosity_of(start + offset));
+        }
+        for range in row_ranges.clone() {
+            let (start, values) = (range.start, &mut self.values[range]);
+            // pdf cos / pi against the integrand L cos with L = albedo E / pi.
+            self.hits
+                .mean_into(&self.slot_radiosity, 1.0 / self.rays as f32, start, values);
+            self.explicit.add_into(&self.slot_radiosity, start, values);
+        }
         self.gathered = true;
         if !self.correction_map.is_empty() {
             let width = context.atlas.width;
             let texels = &context.atlas.receivers.texels;
-            // The technique's value at each receiver is a lookup of its own
-            // (PIC: SH caches, 11 ms on Sponza when this ran on one core).
-            self.changes
-                .par_iter_mut()
-                .with_min_len(RECEIVERS_PER_TASK)
-                .zip(self.receivers.par_iter().zip(&self.values))
-                .for_each(|(change, (&receiver, &value))| {
-                    *change = value - indirect_at(receiver);
-                });
-            for (&receiver, &change) in self.receivers.iter().zip(&self.changes) {
-                let [x, y] = texels[receiver as usize];
-                self.correction_map[(y * width + x) as usize] = change;
+            for range in row_ranges {
+                // The technique's value at each receiver is a lookup of its
+                // own (PIC: SH caches, 11 ms on Sponza when this ran on one
+                // core).
+                self.changes[range.clone()]
+                    .par_iter_mut()
+                    .with_min_len(RECEIVERS_PER_TASK)
+                    .zip(
+                        self.receivers[range.clone()]
+                            .par_iter()
+                            .zip(&self.values[range.clone()]),
+                    )
+                    .for_each(|(change, (&receiver, &value))| {
+                        *change = value - indirect_at(receiver);
+                    });
+                for (&receiver, &change) in self.receivers[range.clone()]
+                    .iter()
+                    .zip(&self.changes[range])
+                {
+                    let [x, y] = texels[receiver as usize];
+                    self.correction_map[(y * width + x) as usize] = change;
+                }
             }
             for &(target, source) in &self.correction_dilation {
                 self.correction_map[target as usize] = self.correction_map[source as usize];
@@ -870,14 +1052,14 @@ impl HitMatrix {
         &self.slots[self.starts[row]..self.starts[row + 1]]
     }
 
-    /// `out[row] = scale * sum of radiosity over the row's hits`.
-    fn mean_into(&self, radiosity: &[Vec3A], scale: f32, out: &mut [Rgb]) {
-        assert_eq!(out.len(), self.rows());
+    /// `out[i] = scale * sum of radiosity over row first + i's hits`.
+    fn mean_into(&self, radiosity: &[Vec3A], scale: f32, first: usize, out: &mut [Rgb]) {
+        assert!(first + out.len() <= self.rows());
         out.par_iter_mut()
             .with_min_len(RECEIVERS_PER_TASK)
             .enumerate()
-            .for_each(|(row, value)| {
-                *value = Rgb::from(sum_slots(radiosity, self.row(row))) * scale;
+            .for_each(|(offset, value)| {
+                *value = Rgb::from(sum_slots(radiosity, self.row(first + offset))) * scale;
             });
     }
 
@@ -935,16 +1117,17 @@ impl WeightedRows {
         matrix
     }
 
-    /// `out[row] += sum of weight * radiosity over the row's entries`.
-    fn add_into(&self, radiosity: &[Vec3A], out: &mut [Rgb]) {
+    /// `out[i] += sum of weight * radiosity over row first + i's entries`.
+    fn add_into(&self, radiosity: &[Vec3A], first: usize, out: &mut [Rgb]) {
         if self.slots.is_empty() {
             return;
         }
-        assert_eq!(out.len() + 1, self.starts.len());
+        assert!(first + out.len() < self.starts.len());
         out.par_iter_mut()
             .with_min_len(RECEIVERS_PER_TASK)
             .enumerate()
-            .for_each(|(row, value)| {
+            .for_each(|(offset, value)| {
+                let row = first + offset;
                 let range = self.starts[row]..self.starts[row + 1];
                 let sum = self.slots[range.clone()]
                     .iter()
@@ -1705,11 +1888,86 @@ mod tests {
             reach_texels: Some(f32::INFINITY),
             rays: 32,
             least_rays: LEAST_RAYS,
+            update_share: 1.0,
         };
         let mut gather = FinalGather::build(context, settings, 1, false);
         gather.light_hits(context, &[]);
         gather.gather(context, |_| indirect, true);
         (gather, indirect, settings)
+    }
+
+    /// Under a quarter budget, the update after the light moves refreshes
+    /// part of the gather: its values differ from the unbudgeted gather's
+    /// and it is not refreshed. With the light at rest, the values equal
+    /// the unbudgeted ones bit for bit once `refreshed` holds (one bounce:
+    /// the hits reflect their direct light, and a point's punctual light
+    /// has the same bits in any batch), which is within 2 / share - 1 = 7
+    /// updates of the move.
+    #[test]
+    fn a_budgeted_gather_catches_up_once_the_light_rests() {
+        let context = point_lit_box();
+        let settings = FinalGatherSettings {
+            reach_texels: Some(f32::INFINITY),
+            rays: 32,
+            least_rays: LEAST_RAYS,
+            update_share: 1.0,
+        };
+        let mut whole = FinalGather::build(&context, settings, 1, false);
+        let quarter = settings.with_update_budget(0.25).expect("a valid share");
+        let mut budgeted = FinalGather::build(&context, quarter, 1, false);
+        let moved = |offset: Vec3| -> Vec<Light> {
+            let mut lights = context.scene.lights.clone();
+            for light in &mut lights {
+                if let Light::Point { position, .. } = light {
+                    *position += offset;
+                }
+            }
+            lights
+        };
+        let bits = |gather: &FinalGather| -> Vec<[u32; 3]> {
+            gather
+                .values()
+                .iter()
+                .map(|value| value.to_array().map(f32::to_bits))
+                .collect()
+        };
+        let update = |gather: &mut FinalGather, lights: &[Light]| {
+            gather.update(&context, lights, |_| Rgb::ZERO, false);
+        };
+        let start = moved(Vec3::ZERO);
+        update(&mut whole, &start);
+        update(&mut budgeted, &start);
+        assert!(budgeted.refreshed());
+        assert_eq!(bits(&budgeted), bits(&whole), "the first update does all");
+        let rest = moved(Vec3::new(0.2, -0.15, 0.1));
+        update(&mut whole, &rest);
+        let mut caught_up = None;
+        for update_at_rest in 1..=8 {
+            update(&mut budgeted, &rest);
+            if update_at_rest == 1 {
+                assert!(!budgeted.refreshed());
+                assert_ne!(bits(&budgeted), bits(&whole), "a quarter of the work");
+            }
+            if budgeted.refreshed() {
+                assert_eq!(bits(&budgeted), bits(&whole), "update {update_at_rest}");
+                caught_up.get_or_insert(update_at_rest);
+            }
+        }
+        let caught_up = caught_up.expect("refreshed within 8 updates");
+        assert!(
+            (4..=7).contains(&caught_up),
+            "refreshed after {caught_up} updates"
+        );
+    }
+
+    #[test]
+    fn update_budget_is_a_share_of_the_work() {
+        let settings = FinalGatherSettings::OFF;
+        for bad in [0.0, -0.5, 1.5, f32::NAN] {
+            let message = settings.with_update_budget(bad).unwrap_err();
+            assert!(message.starts_with("update_budget"), "{message}");
+        }
+        assert_eq!(settings.with_update_budget(0.5).unwrap().update_share, 0.5);
     }
 
     /// With no light and the same indirect light everywhere, each gathering
@@ -1846,6 +2104,7 @@ mod tests {
             reach_texels: Some(4.0),
             rays: 16,
             least_rays: LEAST_RAYS,
+            update_share: 1.0,
         };
         let gather = FinalGather::build(&context, settings, 1, false);
         assert!(!gather.is_empty());
@@ -1904,6 +2163,7 @@ mod tests {
                     reach_texels,
                     rays: 16,
                     least_rays: LEAST_RAYS,
+                    update_share: 1.0,
                 },
                 1,
                 false,
@@ -1925,6 +2185,7 @@ mod tests {
                 reach_texels: None,
                 rays: 16,
                 least_rays: LEAST_RAYS,
+                update_share: 1.0,
             },
             receivers / 4,
             false,
@@ -1941,6 +2202,7 @@ mod tests {
                 reach_texels: Some(2.0),
                 rays: 16,
                 least_rays: LEAST_RAYS,
+                update_share: 1.0,
             },
             1,
             true,
@@ -2044,6 +2306,7 @@ mod tests {
             reach_texels: Some(f32::INFINITY),
             rays: 256,
             least_rays: LEAST_RAYS,
+            update_share: 1.0,
         };
         let mut gather = FinalGather::build(&context, settings, 1, false);
         assert!(!gather.explicit.slots.is_empty());
