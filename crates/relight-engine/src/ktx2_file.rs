@@ -71,10 +71,17 @@ impl TexelFormat {
 /// bilinear lookup that touches it.
 #[inline]
 pub fn f16_of(value: f32) -> f16 {
+    f16::from_f32(f16_range(value))
+}
+
+/// What [`f16_of`] converts: `value` clamped to the largest half float,
+/// and 0 for negative or NaN light. Block conversions clamp with it too.
+#[inline]
+pub(crate) fn f16_range(value: f32) -> f32 {
     if value > 0.0 {
-        f16::from_f32(value.min(f16::MAX.to_f32()))
+        value.min(f16::MAX.to_f32())
     } else {
-        f16::ZERO
+        0.0
     }
 }
 

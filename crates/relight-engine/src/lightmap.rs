@@ -15,9 +15,6 @@ const ROWS_PER_TASK: usize = 16;
 /// Texels converted to half floats together: a few kilobytes on the stack.
 const TEXELS_PER_BLOCK: usize = 256;
 
-/// The largest finite half float, where [`crate::f16_of`] clamps.
-const F16_MAX: f32 = 65504.0;
-
 /// Which texel each atlas texel copies, fixed at creation so that a frame
 /// is one parallel pass with no scatter and no dilation step.
 #[derive(Clone, Debug)]
@@ -78,7 +75,7 @@ impl LightmapLayout {
                             None => Rgb::ZERO,
                         };
                         for (channel, value) in rgba.iter_mut().zip(value.to_array()) {
-                            *channel = if value > 0.0 { value.min(F16_MAX) } else { 0.0 };
+                            *channel = crate::ktx2_file::f16_range(value);
                         }
                         rgba[3] = 1.0;
                     }

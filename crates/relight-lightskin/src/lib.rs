@@ -537,7 +537,8 @@ pub struct LightSkin {
     texel_glossy: Vpls,
     /// The receiver each lightmap texel shows: shading samples the
     /// receivers' irradiance (final gather included) and the texels'
-    /// interpolated glossy lights through it, so no frame builds a map.
+    /// interpolated glossy lights through it, so no frame builds a map;
+    /// the VALs find their anchors' receivers through it too.
     shown_receiver: Vec<u32>,
     /// Per receiver, whether the final gather writes its light. One
     /// bounce: the gather's hits reflect direct light alone and never read
@@ -853,6 +854,7 @@ impl LightSkin {
         self.visibility.anchor_vals(
             &mut self.vals,
             &self.context.atlas,
+            &self.shown_receiver,
             &self.context.bvh,
             |triangle, position| near_light.covers(triangle, position),
         );

@@ -63,8 +63,6 @@ pub struct PointVisibility {
     bits: Vec<u32>,
     /// Per receiver: its anchor for VALs on its front and on its back.
     receiver_anchors: Vec<[u32; 2]>,
-    /// The atlas's receiver of each texel, gutters included.
-    receiver_of_texel: Vec<u32>,
     /// The static points in a grid of `reach` cells, and their normals,
     /// kept from [`Self::anchor_receivers`]: each frame a VAL's anchor is
     /// checked against them (both ends lifted `anchor_lift`), and a VAL
@@ -128,7 +126,6 @@ impl PointVisibility {
             words_per_row,
             bits,
             receiver_anchors: Vec::new(),
-            receiver_of_texel: Vec::new(),
             grid: None,
             normals: Vec::new(),
             anchor_lift: epsilon,
@@ -182,7 +179,6 @@ impl PointVisibility {
     pub fn memory_bytes(&self) -> usize {
         self.bits.len() * 4
             + self.receiver_anchors.len() * 8
-            + self.receiver_of_texel.len() * 4
             + (self.grid.as_ref().map_or(0, |grid| grid.positions().len()) + self.normals.len())
                 * 12
     }
@@ -256,7 +252,6 @@ impl PointVisibility {
                 })
             })
             .collect();
-        self.receiver_of_texel = atlas.dilated_receiver_of_texel();
         self.grid = Some(grid);
         self.normals = normals.to_vec();
     }
@@ -283,10 +278,14 @@ impl PointVisibility {
     /// VALs on surfaces that `near_light(triangle, position)` takes are
     /// hidden too: the points gather those surfaces' light from explicit
     /// samples instead (`relight_technique::NearLightSamples`).
+    ///
+    /// `shown_receiver` is the atlas's receiver of each texel, gutters
+    /// included ([`Atlas::dilated_receiver_of_texel`]).
     pub fn anchor_vals(
         &self,
         vals: &mut Vals,
         atlas: &Atlas,
+        shown_receiver: &[u32],
         bvh: &Bvh,
         near_light: impl Fn(u32, Vec3) -> bool + Sync,
     ) {
@@ -316,7 +315,7 @@ impl PointVisibility {
                 let uv = atlas.uv_of(triangle, vals_ref.site_barycentric[index]);
                 let x = (uv.x.floor() as i64).clamp(0, width - 1);
                 let y = (uv.y.floor() as i64).clamp(0, height - 1);
-                let receiver = self.receiver_of_texel[(y * width + x) as usize];
+                let receiver = shown_receiver[(y * width + x) as usize];
                 if receiver == u32::MAX {
                     return;
                 }

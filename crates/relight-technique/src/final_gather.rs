@@ -422,14 +422,11 @@ pub struct FinalGather {
 struct Refresh {
     slots_per_update: usize,
     rows_per_update: usize,
-    next_slot: usize,
-    next_row: usize,
     /// This update's ranges start here; `partial` is false while every
-    /// slot and row is refreshed (the first update, or no budget).
+    /// slot and row is refreshed (until a gather has run, or no budget).
     slot_start: usize,
     row_start: usize,
     partial: bool,
-    lit_once: bool,
     /// The last update's lights, and how many updates have seen them
     /// since they last changed (the first that did counts as 0).
     lights: Vec<Light>,
@@ -758,32 +755,21 @@ impl FinalGather {
         let start = Instant::now();
         self.begin_refresh(lights);
         let direct = context.direct();
-        if !self.refresh.partial {
-            self.slot_static.irradiance_batch_over_footprints(
-                &direct,
+        let ranges = self.slot_ranges();
+        let fixed = self
+            .slot_static
+            .at(&direct, &self.slot_positions, &self.slot_normals);
+        for range in ranges {
+            // A point's punctual light is the same whatever batch it is
+            // in, so a part gives the bits the whole would.
+            direct.irradiance_batch_over_footprints(
                 lights,
-                &self.slot_positions,
-                &self.slot_normals,
-                Footprints::Each(&self.slot_areas),
-                &mut self.slot_direct,
+                &self.slot_positions[range.clone()],
+                &self.slot_normals[range.clone()],
+                Footprints::Each(&self.slot_areas[range.clone()]),
+                fixed.map(|fixed| &fixed[range.clone()]),
+                &mut self.slot_direct[range],
             );
-        } else {
-            let ranges = self.slot_ranges();
-            let fixed = self
-                .slot_static
-                .at(&direct, &self.slot_positions, &self.slot_normals);
-            for range in ranges {
-                // A point's punctual light is the same whatever batch it
-                // is in, so a part gives the bits the whole would.
-                direct.irradiance_batch_over_footprints(
-                    lights,
-                    &self.slot_positions[range.clone()],
-                    &self.slot_normals[range.clone()],
-                    Footprints::Each(&self.slot_areas[range.clone()]),
-                    fixed.map(|fixed| &fixed[range.clone()]),
-                    &mut self.slot_direct[range],
-                );
-            }
         }
         self.hit_lighting_time += start.elapsed();
     }
@@ -802,9 +788,10 @@ impl FinalGather {
         } else {
             refresh.updates_at_rest += 1;
         }
-        refresh.partial = refresh.lit_once
-            && (refresh.slots_per_update < slots || refresh.rows_per_update < rows);
-        refresh.lit_once = true;
+        let was_partial = refresh.partial;
+        // Parts can keep their light only once a gather has given them some.
+        refresh.partial =
+            self.gathered && (refresh.slots_per_update < slots || refresh.rows_per_update < rows);
         // A receiver summed before the last of its hits was relit under
         // these lights is stale: the slots take one cycle of updates, and
         // the receivers one more from the update that relit the last slot.
@@ -812,11 +799,9 @@ impl FinalGather {
         refresh.current = !refresh.partial
             || (!changed
                 && (refresh.current || refresh.updates_at_rest + 2 >= slot_cycle + row_cycle));
-        if refresh.partial {
-            refresh.slot_start = refresh.next_slot;
-            refresh.row_start = refresh.next_row;
-            refresh.next_slot = (refresh.next_slot + refresh.slots_per_update) % slots.max(1);
-            refresh.next_row = (refresh.next_row + refresh.rows_per_update) % rows.max(1);
+        if refresh.partial && was_partial {
+            refresh.slot_start = (refresh.slot_start + refresh.slots_per_update) % slots.max(1);
+            refresh.row_start = (refresh.row_start + refresh.rows_per_update) % rows.max(1);
         }
     }
 
