@@ -866,7 +866,6 @@ impl Pic {
         let mut final_gather = std::mem::take(&mut self.final_gather);
         let values = &self.receiver_values;
         final_gather.gather(
-            &self.context,
             |receiver| values[receiver as usize],
             self.settings.bounces > 1,
         );

@@ -330,7 +330,7 @@ impl Srp {
         let indirect_at = |receiver| self.irradiance[self.slot_of_receiver(receiver)].to_rgb();
         let feedback = self.settings.bounces > 1;
         if hits_lit {
-            final_gather.gather(&self.context, indirect_at, feedback);
+            final_gather.gather(indirect_at, feedback);
         } else {
             final_gather.update(&self.context, &self.lights, indirect_at, feedback);
         }

@@ -400,15 +400,14 @@ pub struct FinalGather {
     /// took it: the shadow rays, reported apart from the rest.
     hit_lighting_time: Duration,
     /// Per-frame, for techniques whose shading does not read per-receiver
-    /// values: the gather's change to each gathering receiver's light as a
-    /// dilated lightmap (zero elsewhere), which shading adds.
-    correction_map: Vec<Rgb>,
-    /// Per-frame, with the correction map: each gathering receiver's
-    /// change before it is written into the map.
+    /// values: the gather's change to each gathering receiver's light,
+    /// which shading adds, read as a lightmap through `shown_row`.
     changes: Vec<Rgb>,
-    /// The atlas's dilation pairs for the gathering receivers' texels, the
-    /// only ones the correction map is not zero at.
-    correction_dilation: Vec<(u32, u32)>,
+    /// Per lightmap texel, the gathering receiver (row of `changes`) it
+    /// shows after dilation, `MISS` elsewhere; empty without a correction.
+    /// Lookups read four texels through it, so no frame scatters and
+    /// dilates a full map of changes, single-threaded, for them.
+    shown_row: Vec<u32>,
     /// Which part of the work this update does under `update_budget`.
     refresh: Refresh,
 }
@@ -477,9 +476,10 @@ impl FinalGather {
     /// box with 8192 caches that is one texel; on Sponza's 378k receivers
     /// about seven.
     ///
-    /// `correction_map`: keep the lightmap of changes that
-    /// [`Self::correction`] samples, for a technique whose shading
-    /// interpolates something other than the receivers' values.
+    /// `correction_map`: keep the changes, and the texel map through which
+    /// [`Self::correction`] samples them as a lightmap, for a technique
+    /// whose shading interpolates something other than the receivers'
+    /// values.
     pub fn build(
         context: &SceneContext,
         settings: FinalGatherSettings,
@@ -637,20 +637,27 @@ impl FinalGather {
         let mut slot_static = StaticDirect::default();
         // Traced here, at load, rather than by the first frame.
         let _ = slot_static.at(&context.direct(), &slot_positions, &slot_normals);
-        let map_size = if correction_map && !gathering.is_empty() {
-            (context.atlas.width * context.atlas.height) as usize
+        let corrects = correction_map && !gathering.is_empty();
+        let shown_row = if corrects {
+            let mut row_of_receiver = vec![MISS; receivers.len()];
+            for (row, &receiver) in gathering.iter().enumerate() {
+                row_of_receiver[receiver as usize] = row as u32;
+            }
+            let mut shown = context.atlas.dilated_receiver_of_texel();
+            for texel in &mut shown {
+                *texel = row_of_receiver
+                    .get(*texel as usize)
+                    .copied()
+                    .unwrap_or(MISS);
+            }
+            shown
         } else {
-            0
+            Vec::new()
         };
         let gathering_count = gathering.len();
         Self {
-            correction_map: vec![Rgb::ZERO; map_size],
-            changes: vec![Rgb::ZERO; if map_size > 0 { gathering.len() } else { 0 }],
-            correction_dilation: if map_size > 0 {
-                context.atlas.dilation_from(gathering.iter().copied())
-            } else {
-                Vec::new()
-            },
+            shown_row,
+            changes: vec![Rgb::ZERO; if corrects { gathering.len() } else { 0 }],
             rays: samples.len(),
             values: vec![Rgb::ZERO; gathering.len()],
             slot_gathering,
@@ -740,7 +747,7 @@ impl FinalGather {
             1
         };
         for _ in 0..passes {
-            self.gather(context, &indirect_at, hits_reflect_indirect);
+            self.gather(&indirect_at, hits_reflect_indirect);
         }
     }
 
@@ -844,12 +851,7 @@ impl FinalGather {
     /// `hits_reflect_indirect`, `indirect_at` their receivers, or what a
     /// gathering receiver gathered last time) into [`Self::values`] and
     /// the correction map.
-    pub fn gather(
-        &mut self,
-        context: &SceneContext,
-        indirect_at: impl Fn(u32) -> Rgb + Sync,
-        hits_reflect_indirect: bool,
-    ) {
+    pub fn gather(&mut self, indirect_at: impl Fn(u32) -> Rgb + Sync, hits_reflect_indirect: bool) {
         if self.receivers.is_empty() {
             return;
         }
@@ -899,9 +901,7 @@ impl FinalGather {
             self.explicit.add_into(&self.slot_radiosity, start, values);
         }
         self.gathered = true;
-        if !self.correction_map.is_empty() {
-            let width = context.atlas.width;
-            let texels = &context.atlas.receivers.texels;
+        if !self.shown_row.is_empty() {
             for range in row_ranges {
                 // The technique's value at each receiver is a lookup of its
                 // own (PIC: SH caches, 11 ms on Sponza when this ran on one
@@ -912,21 +912,11 @@ impl FinalGather {
                     .zip(
                         self.receivers[range.clone()]
                             .par_iter()
-                            .zip(&self.values[range.clone()]),
+                            .zip(&self.values[range]),
                     )
                     .for_each(|(change, (&receiver, &value))| {
                         *change = value - indirect_at(receiver);
                     });
-                for (&receiver, &change) in self.receivers[range.clone()]
-                    .iter()
-                    .zip(&self.changes[range])
-                {
-                    let [x, y] = texels[receiver as usize];
-                    self.correction_map[(y * width + x) as usize] = change;
-                }
-            }
-            for &(target, source) in &self.correction_dilation {
-                self.correction_map[target as usize] = self.correction_map[source as usize];
             }
         }
     }
@@ -936,12 +926,12 @@ impl FinalGather {
     /// receivers and without a correction map).
     #[inline]
     pub fn correction(&self, context: &SceneContext, triangle: u32, barycentric: Vec2) -> Rgb {
-        if self.correction_map.is_empty() {
+        if self.shown_row.is_empty() {
             return Rgb::ZERO;
         }
         context
             .atlas
-            .sample(&self.correction_map, triangle, barycentric)
+            .sample_receivers(&self.shown_row, &self.changes, triangle, barycentric)
     }
 
     /// Writes the last update's values over `per_receiver`.
@@ -969,9 +959,8 @@ impl FinalGather {
             + self.slot_receivers.len() * (4 + 4 + 1 + 12 + 12 + 12 + 4 + 12 + 16)
             + self.slot_static.memory_bytes()
             + self.values.len() * 12
-            + self.correction_map.len() * 12
             + self.changes.len() * 12
-            + self.correction_dilation.len() * 8
+            + self.shown_row.len() * 4
     }
 
     /// How many receivers gather and how many texels their rays hit.
@@ -1877,7 +1866,7 @@ mod tests {
         };
         let mut gather = FinalGather::build(context, settings, 1, false);
         gather.light_hits(context, &[]);
-        gather.gather(context, |_| indirect, true);
+        gather.gather(|_| indirect, true);
         (gather, indirect, settings)
     }
 
@@ -2017,7 +2006,7 @@ mod tests {
         let context = point_lit_box();
         let (mut gather, indirect, settings) = gathered_once_in_the_dark(&context);
         let first: Vec<Rgb> = gather.values().to_vec();
-        gather.gather(&context, |_| indirect, true);
+        gather.gather(|_| indirect, true);
         let receivers = &context.atlas.receivers;
         let gathered_at = |receiver: u32| match gather.receivers().binary_search(&receiver) {
             Ok(index) => first[index],
@@ -2296,7 +2285,7 @@ mod tests {
         let mut gather = FinalGather::build(&context, settings, 1, false);
         assert!(!gather.explicit.slots.is_empty());
         gather.light_hits(&context, &context.scene.lights);
-        gather.gather(&context, |_| Rgb::ZERO, false);
+        gather.gather(|_| Rgb::ZERO, false);
         const STRIDE: usize = 16;
         let gathered: Vec<f32> = gather
             .values()
