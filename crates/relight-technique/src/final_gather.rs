@@ -639,18 +639,16 @@ impl FinalGather {
         let _ = slot_static.at(&context.direct(), &slot_positions, &slot_normals);
         let corrects = correction_map && !gathering.is_empty();
         let shown_row = if corrects {
-            let mut row_of_receiver = vec![MISS; receivers.len()];
-            for (row, &receiver) in gathering.iter().enumerate() {
-                row_of_receiver[receiver as usize] = row as u32;
-            }
-            let mut shown = context.atlas.dilated_receiver_of_texel();
-            for texel in &mut shown {
-                *texel = row_of_receiver
-                    .get(*texel as usize)
-                    .copied()
-                    .unwrap_or(MISS);
-            }
-            shown
+            context
+                .atlas
+                .dilated_receiver_of_texel()
+                .into_iter()
+                .map(|receiver| {
+                    gathering
+                        .binary_search(&receiver)
+                        .map_or(MISS, |row| row as u32)
+                })
+                .collect()
         } else {
             Vec::new()
         };
@@ -850,7 +848,7 @@ impl FinalGather {
     /// direct light from the last [`Self::light_hits`] plus, with
     /// `hits_reflect_indirect`, `indirect_at` their receivers, or what a
     /// gathering receiver gathered last time) into [`Self::values`] and
-    /// the correction map.
+    /// the changes that [`Self::correction`] reads.
     pub fn gather(&mut self, indirect_at: impl Fn(u32) -> Rgb + Sync, hits_reflect_indirect: bool) {
         if self.receivers.is_empty() {
             return;
