@@ -19,15 +19,6 @@ use std::collections::HashMap;
 /// Neighbours per interpolated target (the paper's eight).
 pub const NEIGHBOURS: usize = 8;
 
-/// How far a target's neighbours may be, in point spacings (or in
-/// distances to its nearest point where that is farther). Interpolation
-/// blends the neighbours' averaged lights and evaluates them at the
-/// target, so a point a metre and a half away, lit by a lamp that the
-/// target stands beside, gave the target that lamp's light at a tenth of
-/// the distance: on a small lampshade with one point of its own, the
-/// other seven neighbours were on a box's face far below.
-const NEIGHBOUR_REACH: f32 = 2.0;
-
 /// A point fixed to a mesh.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Anchor {
@@ -168,13 +159,6 @@ pub fn spread_points(
     (anchors, total_area)
 }
 
-/// How far below a query's tangent plane a neighbour may lie, as the sine
-/// of its angle: a curved surface's own points lie behind the plane by
-/// about distance^2 / (2 radius), under half the distance wherever the
-/// points are spaced closer than the radius; a point across a thin wall
-/// or a shade lies nearly straight behind.
-const MAX_BEHIND_SLOPE: f32 = 0.5;
-
 /// Uniform hash grid over points for nearest-neighbour queries; it
 /// borrows the points ([`PointGrid::new`]) or owns them
 /// ([`PointGrid::owned`], to be kept across frames).
@@ -226,14 +210,10 @@ impl<'a> PointGrid<'a> {
     }
 
     /// The `NEIGHBOURS` nearest points whose normal faces the same side as
-    /// `normal` (positive dot product) and that do not lie behind the
-    /// query's surface, nearest first, as (index, distance). Points facing
-    /// away would get weight zero in equation 12 anyway; skipping them
-    /// keeps a texel in a corner from ending up with only the other wall's
-    /// points and no light. Points behind are across the surface: the
-    /// outside of a thick lampshade has the far inside wall's points, lit
-    /// by the lamp, facing its own way a hand's width behind it, and
-    /// where no point of its own was near it took their light.
+    /// `normal` (positive dot product), nearest first, as (index, distance).
+    /// Points facing away would get weight zero in equation 12 anyway;
+    /// skipping them keeps a texel in a corner from ending up with only
+    /// the other wall's points and no light.
     pub fn nearest_facing(
         &self,
         position: Vec3,
@@ -262,15 +242,9 @@ impl<'a> PointGrid<'a> {
         let whole = ((self.high - self.low).max_element() / self.cell).ceil() + 2.0;
         let reach = whole.min((max_distance / self.cell).ceil() + 1.0) as i32;
         let consider = |index: u32, found: &mut Nearest| {
-            if normals[index as usize].dot(normal) <= 0.0 {
-                return;
+            if normals[index as usize].dot(normal) > 0.0 {
+                found.offer(index, self.positions[index as usize].distance(position));
             }
-            let offset = self.positions[index as usize] - position;
-            let distance = offset.length();
-            if offset.dot(normal) < -MAX_BEHIND_SLOPE * distance {
-                return;
-            }
-            found.offer(index, distance);
         };
         for ring in 0..=reach {
             for dx in -ring..=ring {
@@ -347,12 +321,6 @@ impl Nearest {
             *entry = (index, distance, point_normals[index as usize]);
         }
         interpolation_weights(normal, &entries[..self.len])
-    }
-
-    /// Drops the neighbours farther than `distance`, keeping the nearest.
-    pub fn keep_within(&mut self, distance: f32) {
-        let within = self.entries[..self.len].partition_point(|&(_, d)| d <= distance);
-        self.len = within.max(self.len.min(1));
     }
 
     fn is_full(&self) -> bool {
@@ -446,9 +414,6 @@ impl Interpolation {
                 .zip(target_normals)
                 .map_init(Nearest::default, |found, (&position, &normal)| {
                     grid.nearest_facing(position, normal, point_normals, found);
-                    if let Some(&(_, nearest)) = found.as_slice().first() {
-                        found.keep_within(NEIGHBOUR_REACH * spacing.max(nearest));
-                    }
                     let (indices, weights) = found.weights(normal, point_normals);
                     (indices, quantise_weights(&weights))
                 })
