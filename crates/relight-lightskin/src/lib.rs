@@ -75,6 +75,15 @@
 //!   coarser than the points (a wall of two triangles), and lightmap texels
 //!   are a tessellation finer than the points everywhere. Moving meshes
 //!   interpolate at their vertices, as in the paper.
+//! - A texel's neighbours are the eight nearest points that face its way,
+//!   lie in front of its surface and within two point spacings (or twice
+//!   its nearest point's distance where no point is that near): a thick
+//!   lampshade's outside otherwise took the light of the inside wall
+//!   behind it and of a box far below, evaluated beside the lamp
+//!   ([`points::Interpolation`]). A texel with no point in front of it
+//!   within eight spacings (the outside of a closed building, whose hidden
+//!   faces hold no points) takes its nearest facing points wherever they
+//!   lie, so that no search runs over the whole scene.
 //! - Points in space (back faces, points off the meshes) gather one
 //!   bounce from the static surfaces around them over `space_rays` fixed
 //!   rays (direct light at each hit), plus the point cloud's VALs without

@@ -19,6 +19,20 @@ use std::collections::HashMap;
 /// Neighbours per interpolated target (the paper's eight).
 pub const NEIGHBOURS: usize = 8;
 
+/// How far a target's neighbours may be, in point spacings (or in
+/// distances to its nearest point where that is farther). Interpolation
+/// blends the neighbours' averaged lights and evaluates them at the
+/// target, so a point a metre and a half away, lit by a lamp that the
+/// target stands beside, gave the target that lamp's light at a tenth of
+/// the distance: on a small lampshade with one point of its own, the
+/// other seven neighbours were on a box's face far below.
+const NEIGHBOUR_REACH: f32 = 2.0;
+
+/// How far, in point spacings, a target looks for a point in front of it
+/// before it takes the nearest facing points wherever they lie (see
+/// [`interpolation_neighbours`]).
+const FARTHEST_FRONT: f32 = 8.0;
+
 /// A point fixed to a mesh.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Anchor {
@@ -159,6 +173,13 @@ pub fn spread_points(
     (anchors, total_area)
 }
 
+/// How far below a query's tangent plane a neighbour may lie, as the sine
+/// of its angle: a curved surface's own points lie behind the plane by
+/// about distance^2 / (2 radius), under half the distance wherever the
+/// points are spaced closer than the radius; a point across a thin wall
+/// or a shade lies nearly straight behind.
+const MAX_BEHIND_SLOPE: f32 = 0.5;
+
 /// Uniform hash grid over points for nearest-neighbour queries; it
 /// borrows the points ([`PointGrid::new`]) or owns them
 /// ([`PointGrid::owned`], to be kept across frames).
@@ -213,7 +234,8 @@ impl<'a> PointGrid<'a> {
     /// `normal` (positive dot product), nearest first, as (index, distance).
     /// Points facing away would get weight zero in equation 12 anyway;
     /// skipping them keeps a texel in a corner from ending up with only
-    /// the other wall's points and no light.
+    /// the other wall's points and no light. The search has no bound: it
+    /// ends once it holds `NEIGHBOURS` points.
     pub fn nearest_facing(
         &self,
         position: Vec3,
@@ -221,17 +243,34 @@ impl<'a> PointGrid<'a> {
         normals: &[Vec3],
         found: &mut Nearest,
     ) {
-        self.nearest_facing_within(position, normal, normals, f32::INFINITY, found);
+        self.search(position, normal, normals, f32::INFINITY, false, found);
     }
 
-    /// [`Self::nearest_facing`], searching only as far as `max_distance`
-    /// (a few cells, so a query with nothing facing it near is cheap).
-    pub fn nearest_facing_within(
+    /// [`Self::nearest_facing`] among the points within `max_distance`
+    /// (a few cells, so a query with nothing facing it near is cheap; the
+    /// result may hold farther points too) that do not lie behind the
+    /// query's surface. Points behind are across the surface: the outside
+    /// of a thick lampshade has the far inside wall's points, lit by the
+    /// lamp, facing its own way a hand's width behind it, and where no
+    /// point of its own was near it took their light.
+    pub fn nearest_in_front_within(
         &self,
         position: Vec3,
         normal: Vec3,
         normals: &[Vec3],
         max_distance: f32,
+        found: &mut Nearest,
+    ) {
+        self.search(position, normal, normals, max_distance, true, found);
+    }
+
+    fn search(
+        &self,
+        position: Vec3,
+        normal: Vec3,
+        normals: &[Vec3],
+        max_distance: f32,
+        in_front_only: bool,
         found: &mut Nearest,
     ) {
         found.clear();
@@ -242,9 +281,15 @@ impl<'a> PointGrid<'a> {
         let whole = ((self.high - self.low).max_element() / self.cell).ceil() + 2.0;
         let reach = whole.min((max_distance / self.cell).ceil() + 1.0) as i32;
         let consider = |index: u32, found: &mut Nearest| {
-            if normals[index as usize].dot(normal) > 0.0 {
-                found.offer(index, self.positions[index as usize].distance(position));
+            if normals[index as usize].dot(normal) <= 0.0 {
+                return;
             }
+            let offset = self.positions[index as usize] - position;
+            let distance = offset.length();
+            if in_front_only && offset.dot(normal) < -MAX_BEHIND_SLOPE * distance {
+                return;
+            }
+            found.offer(index, distance);
         };
         for ring in 0..=reach {
             for dx in -ring..=ring {
@@ -323,6 +368,12 @@ impl Nearest {
         interpolation_weights(normal, &entries[..self.len])
     }
 
+    /// Drops the neighbours farther than `distance`, keeping the nearest.
+    pub fn keep_within(&mut self, distance: f32) {
+        let within = self.entries[..self.len].partition_point(|&(_, d)| d <= distance);
+        self.len = within.max(self.len.min(1));
+    }
+
     fn is_full(&self) -> bool {
         self.len == NEIGHBOURS
     }
@@ -381,6 +432,41 @@ fn quantise_weights(weights: &[f32; NEIGHBOURS]) -> [u16; NEIGHBOURS] {
     fixed
 }
 
+/// The neighbours a target interpolates: its nearest facing points in
+/// front of it within `NEIGHBOUR_REACH` spacings, or within
+/// `NEIGHBOUR_REACH` times its nearest such point's distance where none is
+/// within a spacing. Every search is bounded: a target that no point
+/// fronts within `FARTHEST_FRONT` spacings (the outside of a closed
+/// building, whose hidden faces have no points, all of them behind it)
+/// would otherwise search the whole grid, for minutes on a scene with
+/// many such receivers and a large ground. Such a target takes its
+/// nearest facing points wherever they lie, as every target did before
+/// the in-front rule.
+fn interpolation_neighbours(
+    grid: &PointGrid,
+    (position, normal): (Vec3, Vec3),
+    point_normals: &[Vec3],
+    spacing: f32,
+    found: &mut Nearest,
+) {
+    let near = NEIGHBOUR_REACH * spacing;
+    grid.nearest_in_front_within(position, normal, point_normals, near, found);
+    if let Some(&(_, nearest)) = found.as_slice().first() {
+        if nearest <= spacing {
+            found.keep_within(near);
+            return;
+        }
+    }
+    let far = FARTHEST_FRONT * spacing;
+    grid.nearest_in_front_within(position, normal, point_normals, far, found);
+    match found.as_slice().first() {
+        Some(&(_, nearest)) if nearest <= far => {
+            found.keep_within(NEIGHBOUR_REACH * nearest);
+        }
+        _ => grid.nearest_facing(position, normal, point_normals, found),
+    }
+}
+
 impl Interpolation {
     pub fn len(&self) -> usize {
         self.weights.len()
@@ -413,7 +499,13 @@ impl Interpolation {
                 .par_iter()
                 .zip(target_normals)
                 .map_init(Nearest::default, |found, (&position, &normal)| {
-                    grid.nearest_facing(position, normal, point_normals, found);
+                    interpolation_neighbours(
+                        &grid,
+                        (position, normal),
+                        point_normals,
+                        spacing,
+                        found,
+                    );
                     let (indices, weights) = found.weights(normal, point_normals);
                     (indices, quantise_weights(&weights))
                 })

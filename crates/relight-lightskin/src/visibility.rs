@@ -229,7 +229,7 @@ impl PointVisibility {
                     };
                     let mut any_facing = false;
                     for search in [reach, WIDER_REACH * reach] {
-                        grid.nearest_facing_within(position, normal, normals, search, found);
+                        grid.nearest_in_front_within(position, normal, normals, search, found);
                         let mut facing = found
                             .as_slice()
                             .iter()
@@ -368,7 +368,7 @@ impl PointVisibility {
                 let normal = Vec3::new(vals.nx[index], vals.ny[index], vals.nz[index]);
                 let position = Vec3::new(vals.px[index], vals.py[index], vals.pz[index]);
                 let reach = WIDER_REACH * self.reach;
-                grid.nearest_facing_within(position, normal, &self.normals, reach, found);
+                grid.nearest_in_front_within(position, normal, &self.normals, reach, found);
                 *anchor = found
                     .as_slice()
                     .iter()
