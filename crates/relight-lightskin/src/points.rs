@@ -457,6 +457,10 @@ fn interpolation_neighbours(
             return;
         }
     }
+    // This rescans the near cells, which is cheaper than letting every
+    // target search eight spacings: most fill their eight within two, but
+    // those on an edge or in a corner hold fewer and would search all
+    // eight.
     let far = FARTHEST_FRONT * spacing;
     grid.nearest_in_front_within(position, normal, point_normals, far, found);
     match found.as_slice().first() {

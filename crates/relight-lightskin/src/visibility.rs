@@ -184,8 +184,9 @@ impl PointVisibility {
     }
 
     /// Finds each receiver's anchors, front and back: the nearest static
-    /// point (`positions`, `normals`) within `reach` facing that side that
-    /// the receiver sees (a ray between them, both ends lifted off their
+    /// point (`positions`, `normals`) within `reach` facing that side, and
+    /// not behind the receiver's surface on it
+    /// ([`PointGrid::nearest_in_front_within`]), that the receiver sees (a ray between them, both ends lifted off their
     /// surfaces by a twentieth of `reach` and at least `epsilon`, so that
     /// a chord across a column or a tessellated floor is not taken for a
     /// wall). A VAL later takes the anchor of the receiver whose texel it
@@ -196,8 +197,8 @@ impl PointVisibility {
     /// ([`Self::hidden`]): a wall plane that runs on past the corner
     /// outside a building finds the points of its own plane inside, behind
     /// the other wall, and its sunlit VALs would light the room through
-    /// it. One with no points facing it at all (the back of a one-sided
-    /// wall) stays unanchored.
+    /// it. One with no such points at all (the back of a one-sided wall)
+    /// stays unanchored.
     pub fn anchor_receivers(
         &mut self,
         bvh: &Bvh,
@@ -355,8 +356,8 @@ impl PointVisibility {
     }
 
     /// Anchors each VAL marked [`BLOCKED`] to the nearest static point
-    /// within the wider reach, facing its side, that it sees; hidden if
-    /// none.
+    /// within the wider reach, facing its side and in front of it, that it
+    /// sees; hidden if none.
     fn reanchor_blocked(&self, vals: &Vals, anchors: &mut [u32], bvh: &Bvh) {
         let hidden = self.hidden();
         let grid = self.anchor_grid();
