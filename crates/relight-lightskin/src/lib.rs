@@ -64,6 +64,15 @@
 //!   receiver is the first indirect bounce, and nothing bounces further.
 //! - The disc form factor of equation 3 is exact on the disc's axis and an
 //!   approximation elsewhere (tested against numerical integration).
+//! - A sun's map spans the whole scene, so a hall's windows are a texel or
+//!   two across and one ray per texel let all of a window's light in or
+//!   none of it. Where the light passes an edge between two texels (the
+//!   nearer surface shadows the farther one) the texels are cast again at
+//!   3 x 3 points, and each surface those rays meet becomes one VAL of
+//!   their flux. Creases and the scene's outline against the sky are not
+//!   refined, and neither are point and spot lights' maps, whose many
+//!   edges cost far more rays than the rooms gained (docs/techniques.md
+//!   has the figures).
 //! - A VAL's disc has the surface area its texel covers (perpendicular
 //!   footprint over the cosine, at most five times the footprint), not the
 //!   paper's area facing the light, which overstates exitance on tilted

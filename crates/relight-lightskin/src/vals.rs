@@ -3,7 +3,7 @@
 //! Lambertian disc that re-emits the flux the texel received times the
 //! albedo there.
 
-use crate::geometry::Geometry;
+use crate::geometry::{Geometry, SurfaceHit};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use relight_core::colour::luminance;
@@ -498,23 +498,98 @@ pub fn render_rsms(geometry: &Geometry, lights: &[Light], settings: RsmSettings,
     }
 }
 
-/// Calls `texel(u, v)` for the centre of every texel of a `resolution`^2
-/// map spanning (-half_extent, half_extent)^2, rows in parallel, and
-/// appends the VALs it returns to `out` in row order (deterministic).
+/// Sub-texels per side of a map's texel where the light passes an edge:
+/// a low sun reaches a hall only through windows about a texel across, and
+/// one ray per texel lets all of a window's light in or none of it (a 38 m
+/// hall: 0.73x of one bounce at 48 texels a side, 0.83x at 128).
+const EDGE_REFINEMENT: u32 = 3;
+
+/// How a map's texels meet the scene.
+trait MapRays: Sync {
+    /// The first surface along the ray through map point (`u`, `v`).
+    fn cast(&self, u: f32, v: f32) -> Option<SurfaceHit>;
+    /// The VAL of a `side`-wide square of the map around (`u`, `v`) whose
+    /// ray met `hit`.
+    fn val(&self, u: f32, v: f32, side: f32, hit: &SurfaceHit) -> Option<SitedVal>;
+    /// The direction the light travels to `hit`.
+    fn travel(&self, hit: &SurfaceHit) -> Vec3;
+    /// About how wide a texel of `side` is where it meets `hit`.
+    fn width_at(&self, side: f32, hit: &SurfaceHit) -> f32;
+}
+
+/// Casts every texel of a `resolution`^2 map spanning
+/// (-half_extent, half_extent)^2 through its centre and appends the VALs
+/// to `out` in row order (deterministic). With `refine_edges`, a texel is
+/// cast again at [`EDGE_REFINEMENT`]^2 points where the light passes an
+/// edge between it and a neighbour ([`passes_an_edge`]), and its rays
+/// leave one VAL per surface they meet, of their summed flux, so edges
+/// cost rays but few VALs.
 fn map_texels(
     resolution: u32,
     half_extent: f32,
+    refine_edges: bool,
     out: &mut Vals,
-    texel: impl Fn(f32, f32) -> Option<SitedVal> + Sync,
+    rays: &impl MapRays,
 ) {
+    let columns = resolution as usize;
     let side = 2.0 * half_extent / resolution as f32;
-    let rows: Vec<Vec<SitedVal>> = (0..resolution)
+    // Map coordinates of the point `fraction` of the way across texel
+    // `index` in each direction.
+    let at = |index: usize, fraction: (f32, f32)| {
+        let (row, column) = (index / columns, index % columns);
+        (
+            (column as f32 + fraction.0) * side - half_extent,
+            (row as f32 + fraction.1) * side - half_extent,
+        )
+    };
+    let coarse: Vec<Option<SurfaceHit>> = (0..columns * columns)
+        .into_par_iter()
+        .with_min_len(64)
+        .map(|index| {
+            let (u, v) = at(index, (0.5, 0.5));
+            rays.cast(u, v)
+        })
+        .collect();
+    let sub_side = side / EDGE_REFINEMENT as f32;
+    let sub_fraction = |sub: u32| (sub as f32 + 0.5) / EDGE_REFINEMENT as f32;
+    let rows: Vec<Vec<SitedVal>> = (0..columns)
         .into_par_iter()
         .map(|row| {
-            let v = (row as f32 + 0.5) * side - half_extent;
-            (0..resolution)
-                .filter_map(|column| texel((column as f32 + 0.5) * side - half_extent, v))
-                .collect()
+            let mut vals = Vec::new();
+            let mut surfaces: Vec<Surface> = Vec::new();
+            for column in 0..columns {
+                let index = row * columns + column;
+                let Some(hit) = &coarse[index] else {
+                    continue;
+                };
+                if !(refine_edges && passes_an_edge(&coarse, columns, row, column, side, rays)) {
+                    let (u, v) = at(index, (0.5, 0.5));
+                    vals.extend(rays.val(u, v, side, hit));
+                    continue;
+                }
+                surfaces.clear();
+                let tolerance = 0.25 * rays.width_at(side, hit);
+                for sub_row in 0..EDGE_REFINEMENT {
+                    for sub_column in 0..EDGE_REFINEMENT {
+                        let (u, v) = at(index, (sub_fraction(sub_column), sub_fraction(sub_row)));
+                        let Some(val) = rays
+                            .cast(u, v)
+                            .and_then(|sub_hit| rays.val(u, v, sub_side, &sub_hit))
+                        else {
+                            continue;
+                        };
+                        match surfaces
+                            .iter_mut()
+                            .find(|surface| surface.holds(&val.0, tolerance))
+                        {
+                            Some(surface) => surface.add(val),
+                            None => surfaces.push(Surface::new(val)),
+                        }
+                    }
+                }
+                vals.extend(surfaces.iter().map(Surface::val));
+            }
+            vals
         })
         .collect();
     for row in rows {
@@ -522,9 +597,101 @@ fn map_texels(
     }
 }
 
-/// One perspective map: texel (i, j) looks along forward + u right + v up
-/// with u, v in (-half_extent, half_extent); its solid angle is
-/// s^2 / (1 + u^2 + v^2)^(3/2) for texel side s on the unit-distance plane.
+/// Whether the light passes an edge between coarse texel (`row`, `column`)
+/// and one of the four beside it: the nearer surface shadows the farther
+/// one, which lies behind its plane while it lies in front of the farther
+/// one's. Creases (a roof meeting a wall, a floor meeting a wall) put the
+/// two surfaces side by side and move no light far, and a texel beside one
+/// that meets nothing lies on the scene's outline against the sky, whose
+/// outer faces nobody inside sees; neither is refined.
+fn passes_an_edge(
+    coarse: &[Option<SurfaceHit>],
+    columns: usize,
+    row: usize,
+    column: usize,
+    side: f32,
+    rays: &impl MapRays,
+) -> bool {
+    let Some(here) = &coarse[row * columns + column] else {
+        return false;
+    };
+    let last = columns - 1;
+    // Behind `a`'s lit side by more than a quarter of a texel.
+    let behind = |a: &SurfaceHit, b: &SurfaceHit, tolerance: f32| {
+        let normal = a.normal;
+        let lit_side = if normal.dot(rays.travel(a)) > 0.0 {
+            -normal
+        } else {
+            normal
+        };
+        lit_side.dot(b.position - a.position) < -tolerance
+    };
+    [
+        (row > 0).then(|| (row - 1) * columns + column),
+        (row < last).then(|| (row + 1) * columns + column),
+        (column > 0).then(|| row * columns + column - 1),
+        (column < last).then(|| row * columns + column + 1),
+    ]
+    .into_iter()
+    .flatten()
+    .any(|index| {
+        coarse[index].as_ref().is_some_and(|there| {
+            let tolerance = 0.25 * rays.width_at(side, here).min(rays.width_at(side, there));
+            behind(here, there, tolerance) != behind(there, here, tolerance)
+        })
+    })
+}
+
+/// The rays of one perspective map: texel (i, j) looks along forward +
+/// u right + v up with u, v in (-half_extent, half_extent); its solid angle
+/// is s^2 / (1 + u^2 + v^2)^(3/2) for texel side s on the unit-distance
+/// plane.
+struct PerspectiveRays<'a> {
+    geometry: &'a Geometry<'a>,
+    origin: Vec3,
+    forward: Vec3,
+    right: Vec3,
+    up: Vec3,
+    intensity: Rgb,
+    profile: Profile,
+}
+
+impl PerspectiveRays<'_> {
+    fn direction(&self, u: f32, v: f32) -> Vec3 {
+        self.forward + self.right * u + self.up * v
+    }
+}
+
+impl MapRays for PerspectiveRays<'_> {
+    fn cast(&self, u: f32, v: f32) -> Option<SurfaceHit> {
+        let direction = self.direction(u, v);
+        let unit = direction / direction.length_squared().sqrt();
+        if self.profile.factor(unit) <= 0.0 {
+            return None;
+        }
+        self.geometry.first_hit(self.origin, unit)
+    }
+
+    fn val(&self, u: f32, v: f32, side: f32, hit: &SurfaceHit) -> Option<SitedVal> {
+        let direction = self.direction(u, v);
+        let length_sq = direction.length_squared();
+        let unit = direction / length_sq.sqrt();
+        let solid_angle = side * side / (length_sq * length_sq.sqrt());
+        let incident_power = self.intensity * (self.profile.factor(unit) * solid_angle);
+        let cos_hit = hit.normal.dot(unit).abs();
+        let footprint = solid_angle * hit.distance * hit.distance;
+        reflect(hit, unit, incident_power, footprint, cos_hit)
+    }
+
+    fn travel(&self, hit: &SurfaceHit) -> Vec3 {
+        hit.position - self.origin
+    }
+
+    fn width_at(&self, side: f32, hit: &SurfaceHit) -> f32 {
+        side * hit.distance
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn perspective_map(
     geometry: &Geometry,
@@ -536,27 +703,54 @@ fn perspective_map(
     profile: Profile,
     out: &mut Vals,
 ) {
-    let side = 2.0 * half_extent / resolution as f32;
-    map_texels(resolution, half_extent, out, |u, v| {
-        let direction = forward + right * u + up * v;
-        let length_sq = direction.length_squared();
-        let unit = direction / length_sq.sqrt();
-        let factor = profile.factor(unit);
-        if factor <= 0.0 {
-            return None;
-        }
-        let solid_angle = side * side / (length_sq * length_sq.sqrt());
-        let hit = geometry.first_hit(origin, unit)?;
-        let incident_power = intensity * (factor * solid_angle);
-        let cos_hit = hit.normal.dot(unit).abs();
-        let footprint = solid_angle * hit.distance * hit.distance;
-        reflect(&hit, unit, incident_power, footprint, cos_hit)
-    });
+    let rays = PerspectiveRays {
+        geometry,
+        origin,
+        forward,
+        right,
+        up,
+        intensity,
+        profile,
+    };
+    // A point light's six maps meet many more edges than a sun's one, and
+    // refining them cost far more than it gained (docs/techniques.md), so
+    // they keep one ray a texel.
+    map_texels(resolution, half_extent, false, out, &rays);
 }
 
-/// An orthographic map over the bounding sphere of everything that can be
-/// lit (of the scene's content, where it has content bounds),
+/// The rays of an orthographic map over the bounding sphere of everything
+/// that can be lit (of the scene's content, where it has content bounds),
 /// perpendicular to `direction`.
+struct OrthographicRays<'a> {
+    geometry: &'a Geometry<'a>,
+    start: Vec3,
+    direction: Vec3,
+    right: Vec3,
+    up: Vec3,
+    irradiance: Rgb,
+}
+
+impl MapRays for OrthographicRays<'_> {
+    fn cast(&self, u: f32, v: f32) -> Option<SurfaceHit> {
+        self.geometry
+            .first_hit(self.start + self.right * u + self.up * v, self.direction)
+    }
+
+    fn val(&self, _u: f32, _v: f32, side: f32, hit: &SurfaceHit) -> Option<SitedVal> {
+        let area = side * side;
+        let cos_hit = hit.normal.dot(self.direction).abs();
+        reflect(hit, self.direction, self.irradiance * area, area, cos_hit)
+    }
+
+    fn travel(&self, _hit: &SurfaceHit) -> Vec3 {
+        self.direction
+    }
+
+    fn width_at(&self, side: f32, _hit: &SurfaceHit) -> f32 {
+        side
+    }
+}
+
 fn orthographic_map(
     geometry: &Geometry,
     direction: Vec3,
@@ -566,27 +760,76 @@ fn orthographic_map(
 ) {
     let (centre, radius, back) = geometry.directional_extent();
     let (right, up) = relight_core::sampling::orthonormal_basis(direction);
-    let side = 2.0 * radius / resolution as f32;
-    let texel_area = side * side;
-    let start = centre - direction * back;
-    map_texels(resolution, radius, out, |u, v| {
-        let hit = geometry.first_hit(start + right * u + up * v, direction)?;
-        let cos_hit = hit.normal.dot(direction).abs();
-        reflect(
-            &hit,
-            direction,
-            irradiance * texel_area,
-            texel_area,
-            cos_hit,
+    let rays = OrthographicRays {
+        geometry,
+        start: centre - direction * back,
+        direction,
+        right,
+        up,
+        irradiance,
+    };
+    map_texels(resolution, radius, true, out, &rays);
+}
+
+/// The VALs a refined texel's rays left on one surface, merged into one.
+struct Surface {
+    first: SitedVal,
+    position_sum: Vec3,
+    power_over_pi: Rgb,
+    area: f32,
+    count: u32,
+}
+
+impl Surface {
+    fn new(val: SitedVal) -> Self {
+        Self {
+            first: val,
+            position_sum: val.0.position,
+            power_over_pi: val.0.power_over_pi,
+            area: val.0.area,
+            count: 1,
+        }
+    }
+
+    /// Whether `val` lies on this surface: the same emitting side within
+    /// about 25 degrees (the two faces of a thin wall light opposite rooms)
+    /// and each within `tolerance` of the other's plane.
+    fn holds(&self, val: &Val, tolerance: f32) -> bool {
+        let first = &self.first.0;
+        let offset = val.position - first.position;
+        first.normal.dot(val.normal) > 0.9
+            && first.normal.dot(offset).abs() <= tolerance
+            && val.normal.dot(offset).abs() <= tolerance
+    }
+
+    fn add(&mut self, val: SitedVal) {
+        self.position_sum += val.0.position;
+        self.power_over_pi += val.0.power_over_pi;
+        self.area += val.0.area;
+        self.count += 1;
+    }
+
+    /// One VAL at the rays' mean position, on the first ray's triangle (the
+    /// site only picks the VAL's anchor, which the plane shares).
+    fn val(&self) -> SitedVal {
+        let (first, site) = self.first;
+        (
+            Val {
+                position: self.position_sum / self.count as f32,
+                normal: first.normal,
+                power_over_pi: self.power_over_pi,
+                area: self.area,
+            },
+            site,
         )
-    });
+    }
 }
 
 /// The VAL a texel leaves: the flux it received times the albedo, on the
 /// side the light came from, over the surface area the texel covers
 /// (perpendicular footprint / cos, capped for grazing texels).
 fn reflect(
-    hit: &crate::geometry::SurfaceHit,
+    hit: &SurfaceHit,
     travel: Vec3,
     incident_power: Rgb,
     perpendicular_footprint: f32,
