@@ -511,23 +511,20 @@ trait MapRays: Sync {
     /// The VAL of a `side`-wide square of the map around (`u`, `v`) whose
     /// ray met `hit`.
     fn val(&self, u: f32, v: f32, side: f32, hit: &SurfaceHit) -> Option<SitedVal>;
-    /// The direction the light travels to `hit`.
-    fn travel(&self, hit: &SurfaceHit) -> Vec3;
-    /// About how wide a texel of `side` is where it meets `hit`.
-    fn width_at(&self, side: f32, hit: &SurfaceHit) -> f32;
 }
 
 /// Casts every texel of a `resolution`^2 map spanning
 /// (-half_extent, half_extent)^2 through its centre and appends the VALs
-/// to `out` in row order (deterministic). With `refine_edges`, a texel is
-/// cast again at [`EDGE_REFINEMENT`]^2 points where the light passes an
-/// edge between it and a neighbour ([`passes_an_edge`]), and its rays
-/// leave one VAL per surface they meet, of their summed flux, so edges
-/// cost rays but few VALs.
+/// to `out` in row order (deterministic). With `refine_along` (the
+/// direction a parallel map's light travels, its texels as wide on every
+/// surface as on the map), a texel is cast again at [`EDGE_REFINEMENT`]^2
+/// points where the light passes an edge between it and a neighbour
+/// ([`passes_an_edge`]), and its rays leave one VAL per surface they meet,
+/// of their summed flux, so edges cost rays but few VALs.
 fn map_texels(
     resolution: u32,
     half_extent: f32,
-    refine_edges: bool,
+    refine_along: Option<Vec3>,
     out: &mut Vals,
     rays: &impl MapRays,
 ) {
@@ -552,6 +549,10 @@ fn map_texels(
         .collect();
     let sub_side = side / EDGE_REFINEMENT as f32;
     let sub_fraction = |sub: u32| (sub as f32 + 0.5) / EDGE_REFINEMENT as f32;
+    // The middle sub-ray of an odd refinement is the coarse ray again.
+    let middle = (EDGE_REFINEMENT % 2 == 1).then_some(EDGE_REFINEMENT / 2);
+    // Surfaces within a quarter texel of each other's plane are one.
+    let tolerance = 0.25 * side;
     let rows: Vec<Vec<SitedVal>> = (0..columns)
         .into_par_iter()
         .map(|row| {
@@ -562,19 +563,25 @@ fn map_texels(
                 let Some(hit) = &coarse[index] else {
                     continue;
                 };
-                if !(refine_edges && passes_an_edge(&coarse, columns, row, column, side, rays)) {
+                let refine = refine_along.is_some_and(|travel| {
+                    passes_an_edge(&coarse, columns, row, column, travel, tolerance)
+                });
+                if !refine {
                     let (u, v) = at(index, (0.5, 0.5));
                     vals.extend(rays.val(u, v, side, hit));
                     continue;
                 }
                 surfaces.clear();
-                let tolerance = 0.25 * rays.width_at(side, hit);
                 for sub_row in 0..EDGE_REFINEMENT {
                     for sub_column in 0..EDGE_REFINEMENT {
                         let (u, v) = at(index, (sub_fraction(sub_column), sub_fraction(sub_row)));
-                        let Some(val) = rays
-                            .cast(u, v)
-                            .and_then(|sub_hit| rays.val(u, v, sub_side, &sub_hit))
+                        let sub_hit = if middle == Some(sub_row) && middle == Some(sub_column) {
+                            Some(*hit)
+                        } else {
+                            rays.cast(u, v)
+                        };
+                        let Some(val) =
+                            sub_hit.and_then(|sub_hit| rays.val(u, v, sub_side, &sub_hit))
                         else {
                             continue;
                         };
@@ -603,28 +610,23 @@ fn map_texels(
 /// one's. Creases (a roof meeting a wall, a floor meeting a wall) put the
 /// two surfaces side by side and move no light far, and a texel beside one
 /// that meets nothing lies on the scene's outline against the sky, whose
-/// outer faces nobody inside sees; neither is refined.
+/// outer faces nobody inside sees; neither is refined. The light travels
+/// along `travel`; `tolerance` (a quarter texel) is how far behind a plane
+/// counts.
 fn passes_an_edge(
     coarse: &[Option<SurfaceHit>],
     columns: usize,
     row: usize,
     column: usize,
-    side: f32,
-    rays: &impl MapRays,
+    travel: Vec3,
+    tolerance: f32,
 ) -> bool {
     let Some(here) = &coarse[row * columns + column] else {
         return false;
     };
     let last = columns - 1;
-    // Behind `a`'s lit side by more than a quarter of a texel.
-    let behind = |a: &SurfaceHit, b: &SurfaceHit, tolerance: f32| {
-        let normal = a.normal;
-        let lit_side = if normal.dot(rays.travel(a)) > 0.0 {
-            -normal
-        } else {
-            normal
-        };
-        lit_side.dot(b.position - a.position) < -tolerance
+    let behind = |a: &SurfaceHit, b: &SurfaceHit| {
+        lit_side(a, travel).dot(b.position - a.position) < -tolerance
     };
     [
         (row > 0).then(|| (row - 1) * columns + column),
@@ -635,10 +637,9 @@ fn passes_an_edge(
     .into_iter()
     .flatten()
     .any(|index| {
-        coarse[index].as_ref().is_some_and(|there| {
-            let tolerance = 0.25 * rays.width_at(side, here).min(rays.width_at(side, there));
-            behind(here, there, tolerance) != behind(there, here, tolerance)
-        })
+        coarse[index]
+            .as_ref()
+            .is_some_and(|there| behind(here, there) != behind(there, here))
     })
 }
 
@@ -682,14 +683,6 @@ impl MapRays for PerspectiveRays<'_> {
         let footprint = solid_angle * hit.distance * hit.distance;
         reflect(hit, unit, incident_power, footprint, cos_hit)
     }
-
-    fn travel(&self, hit: &SurfaceHit) -> Vec3 {
-        hit.position - self.origin
-    }
-
-    fn width_at(&self, side: f32, hit: &SurfaceHit) -> f32 {
-        side * hit.distance
-    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -715,7 +708,7 @@ fn perspective_map(
     // A point light's six maps meet many more edges than a sun's one, and
     // refining them cost far more than it gained (docs/techniques.md), so
     // they keep one ray a texel.
-    map_texels(resolution, half_extent, false, out, &rays);
+    map_texels(resolution, half_extent, None, out, &rays);
 }
 
 /// The rays of an orthographic map over the bounding sphere of everything
@@ -741,14 +734,6 @@ impl MapRays for OrthographicRays<'_> {
         let cos_hit = hit.normal.dot(self.direction).abs();
         reflect(hit, self.direction, self.irradiance * area, area, cos_hit)
     }
-
-    fn travel(&self, _hit: &SurfaceHit) -> Vec3 {
-        self.direction
-    }
-
-    fn width_at(&self, side: f32, _hit: &SurfaceHit) -> f32 {
-        side
-    }
 }
 
 fn orthographic_map(
@@ -768,7 +753,7 @@ fn orthographic_map(
         up,
         irradiance,
     };
-    map_texels(resolution, radius, true, out, &rays);
+    map_texels(resolution, radius, Some(direction), out, &rays);
 }
 
 /// The VALs a refined texel's rays left on one surface, merged into one.
@@ -839,11 +824,7 @@ fn reflect(
     if power.max_element() <= 0.0 {
         return None;
     }
-    let normal = if hit.normal.dot(travel) > 0.0 {
-        -hit.normal
-    } else {
-        hit.normal
-    };
+    let normal = lit_side(hit, travel);
     let area = perpendicular_footprint / cos_hit.max(1.0 / MAX_GRAZING_STRETCH);
     Some((
         Val {
@@ -854,6 +835,15 @@ fn reflect(
         },
         hit.site,
     ))
+}
+
+/// The normal of `hit`'s side that light travelling along `travel` reaches.
+fn lit_side(hit: &SurfaceHit, travel: Vec3) -> Vec3 {
+    if hit.normal.dot(travel) > 0.0 {
+        -hit.normal
+    } else {
+        hit.normal
+    }
 }
 
 /// A VAL and the static triangle and barycentric coordinates it lies at.
