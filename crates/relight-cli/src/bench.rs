@@ -171,7 +171,7 @@ fn camera_points(context: &SceneContext, resolution: [u32; 2]) -> Vec<ShadedPoin
                 pixel / resolution[0],
                 Vec2::splat(0.5),
             );
-            let hit = context.bvh.intersect(&ray)?;
+            let hit = relight_render::render::visible_hit(context, &ray)?;
             let triangle = hit.triangle as usize;
             let normal = scene.mesh.geometric_normal(triangle);
             if normal.dot(ray.direction) >= 0.0 {

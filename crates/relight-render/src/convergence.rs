@@ -14,7 +14,7 @@ use crate::image::Image;
 use crate::metrics::{
     error_norms, kept, light_ratio, relative_noise, subset_error, tile_means, SubsetError,
 };
-use crate::render::{render_reference, render_with_technique};
+use crate::render::{render_reference, render_with_technique, visible_hit};
 use rayon::prelude::*;
 use relight_core::sampling::{cosine_hemisphere_around, stratified_square};
 use relight_core::Rgb;
@@ -294,7 +294,7 @@ pub fn visible_receivers(context: &SceneContext) -> Vec<bool> {
                         0.25 + 0.5 * (sub / 2) as f32,
                     );
                     let ray = camera.ray(x, y, offset);
-                    let Some(hit) = context.bvh.intersect(&ray) else {
+                    let Some(hit) = visible_hit(context, &ray) else {
                         continue;
                     };
                     let front = mesh.geometric_normal(hit.triangle as usize);
@@ -333,7 +333,7 @@ pub fn back_facing_pixels(context: &SceneContext) -> Vec<bool> {
                 pixel / camera.width,
                 glam::Vec2::splat(0.5),
             );
-            context.bvh.intersect(&ray).is_some_and(|hit| {
+            visible_hit(context, &ray).is_some_and(|hit| {
                 mesh.geometric_normal(hit.triangle as usize)
                     .dot(ray.direction)
                     >= 0.0

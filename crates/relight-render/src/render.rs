@@ -9,6 +9,7 @@ use relight_core::sampling::{stratification_offset, stratified_square, SampleStr
 use relight_core::Rgb;
 use relight_scene::Light;
 use relight_technique::{Progress, SceneContext, SurfacePoint, Technique};
+use relight_trace::bvh::{Hit, Ray};
 use relight_trace::path::{halves_estimate, CameraRays, PathSettings, PathTracer};
 
 /// The three images every render produces.
@@ -143,6 +144,30 @@ fn to_rgb(sum: [f64; 3], scale: f64) -> Rgb {
     )
 }
 
+/// Two surfaces closer than this along a camera ray are one surface seen
+/// twice: rooms modelled as separate boxes that touch, or overlap by a
+/// modelling slip, put one room's wall in or just before the plane of the
+/// next room's, facing away from it.
+const COINCIDENT_SURFACES_M: f32 = 0.01;
+
+/// The camera ray's closest hit, except that a back face within
+/// 1 cm (`COINCIDENT_SURFACES_M`) of a front face yields to it, as it does in an
+/// engine that culls back faces ([`relight_trace::bvh::Bvh::intersect_front_first`]).
+/// Where the tie fell to the back face, the pixel asked the technique for
+/// a point in space instead of reading the wall's lightmap, and the wall
+/// showed wedges of another shade that followed the BVH's ties. The path
+/// tracer needs no such rule: it lights both faces alike from the
+/// camera's side.
+pub fn visible_hit(context: &SceneContext, ray: &Ray) -> Option<Hit> {
+    let mesh = &context.scene.mesh;
+    let tolerance = COINCIDENT_SURFACES_M / ray.direction.length();
+    context
+        .bvh
+        .intersect_front_first(ray, tolerance, |triangle| {
+            mesh.geometric_normal(triangle as usize).dot(ray.direction) < 0.0
+        })
+}
+
 /// Images lit by `technique`'s indirect light and the shared direct light,
 /// `spp` jittered primary rays per pixel (for antialiasing and area-light
 /// sampling; the technique's answer itself is noise-free).
@@ -169,7 +194,7 @@ pub fn render_with_technique(
             for sample in 0..spp {
                 let mut rng = SampleStream::new(seed, pixel, sample as u64);
                 let ray = camera.ray(x, y, rng.next_vec2());
-                let Some(hit) = context.bvh.intersect(&ray) else {
+                let Some(hit) = visible_hit(context, &ray) else {
                     direct_sum += scene.environment.radiance;
                     continue;
                 };

@@ -340,7 +340,13 @@ pub fn fill_hidden_texels(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
 /// shows. Beyond two rooms' coincident walls (each room its own box) is the
 /// other room's floor, another chart (charts stop at walls standing on
 /// their edges) whose lookups never read this texel: moved there, a
-/// receiver would show that room's light beside the wall. Where the
+/// receiver would show that room's light beside the wall. Where the two
+/// walls lie in one plane, this room's wall is the one met: a receiver on
+/// the line where they meet the floor moves off it as from any wall, and
+/// left on it, its rays and its shadow rays set out from both walls'
+/// plane and passed through them into the other room (a generated pair
+/// of boxes: floor texels at the partition's foot read fifty times their
+/// neighbours' light). Where the
 /// receiver's own triangle ends does not tell that case apart: a fine
 /// floor's diagonal ends at a wall too, and so does an object's foot.
 pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
@@ -484,7 +490,16 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         direction,
                         t_max: reach + margin,
                     };
-                    let Some(hit) = bvh.intersect(&ray) else {
+                    // Where two rooms' boxes touch, the other room's wall
+                    // lies in this one's plane, back to it: this room's
+                    // wall, facing the receiver, decides.
+                    let Some(hit) = bvh.intersect_front_first(&ray, margin, |triangle| {
+                        scene
+                            .mesh
+                            .geometric_normal(triangle as usize)
+                            .dot(direction)
+                            < 0.0
+                    }) else {
                         continue;
                     };
                     let distance = (hit.t - margin).max(0.0);
@@ -768,6 +783,91 @@ mod tests {
             "{} floor receivers off their triangle, e.g. {:?}",
             strays.len(),
             strays.first().map(|&index| receivers.positions[index])
+        );
+    }
+
+    /// Variant 52 of the generated family of seed 7 is two rooms modelled
+    /// as two boxes that touch: each room's partition wall lies in the
+    /// other's plane, facing into its own room, with a doorway through
+    /// both, and the lamp in one room. The other room's floor receivers at
+    /// the partition's foot sat on the line where the walls meet the
+    /// floor, since the in-plane search met the lit room's wall from
+    /// behind as often as its own from the front; their shadow rays set
+    /// out from the walls' plane and passed through both, and those texels
+    /// read fifty times their neighbours' light. Each now stands off the
+    /// wall, lit as the floor a quarter texel further into its room is
+    /// (dark but where the doorway lets the lamp in). The corners, where a
+    /// receiver moves off one wall only, are left out: there the one
+    /// nearest the lamp's room still sits on the partition's plane.
+    #[test]
+    fn floor_receivers_at_two_boxes_shared_wall_stay_in_their_room() {
+        use relight_scene::generate::variants::variant;
+        let folder = tempfile::tempdir().expect("temporary folder");
+        let path = variant(7, 52)
+            .write(folder.path())
+            .expect("variant written");
+        let scene = relight_scene::load_scene(&path).expect("variant loads");
+        let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
+        let (mesh, receivers) = (&context.scene.mesh, &context.atlas.receivers);
+        let texel = context.atlas.metres_per_texel;
+        let floors: Vec<usize> = (0..mesh.triangles.len())
+            .filter(|&t| {
+                mesh.geometric_normal(t).y > 0.99
+                    && mesh.vertices(t).iter().all(|v| v.y.abs() < 1e-4)
+            })
+            .collect();
+        let min_x = |t: usize| {
+            mesh.vertices(t)
+                .iter()
+                .map(|v| v.x)
+                .fold(f32::MAX, f32::min)
+        };
+        let partition = floors.iter().map(|&t| min_x(t)).fold(f32::MIN, f32::max);
+        let unlit_floor = |t: usize| floors.contains(&t) && min_x(t) > partition - 1e-4;
+        assert!(
+            context.scene.lights.iter().all(|light| match light {
+                relight_scene::Light::Point { position, .. } => position.x < partition,
+                _ => false,
+            }),
+            "the lamp stands in the room below x = {partition}"
+        );
+        let width = floors
+            .iter()
+            .flat_map(|&t| mesh.vertices(t))
+            .map(|v| v.z)
+            .fold(f32::MIN, f32::max);
+        let direct = context.direct();
+        let lights = &context.scene.lights;
+        let at_foot: Vec<usize> = (0..receivers.len())
+            .filter(|&index| {
+                let position = receivers.positions[index];
+                unlit_floor(receivers.triangles[index] as usize)
+                    && position.x < partition + 0.5 * texel
+                    && (texel..width - texel).contains(&position.z)
+            })
+            .collect();
+        assert!(
+            at_foot.len() > 20,
+            "{} receivers at the foot",
+            at_foot.len()
+        );
+        let strays: Vec<(Vec3, relight_core::Rgb, relight_core::Rgb)> = at_foot
+            .iter()
+            .filter_map(|&index| {
+                let (position, normal) = (receivers.positions[index], receivers.normals[index]);
+                let here = direct.irradiance(lights, position, normal, 0);
+                let further = position + Vec3::X * 0.25 * texel;
+                let there = direct.irradiance(lights, further, normal, 0);
+                (here.max_element() > 2.0 * there.max_element() + 1e-4)
+                    .then_some((position, here, there))
+            })
+            .collect();
+        assert!(
+            strays.is_empty(),
+            "{} of {} receivers at the foot lit past the wall, e.g. {:?}",
+            strays.len(),
+            at_foot.len(),
+            strays.first()
         );
     }
 

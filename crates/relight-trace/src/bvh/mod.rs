@@ -161,7 +161,46 @@ impl Bvh {
     #[inline]
     pub fn intersect(&self, ray: &Ray) -> Option<Hit> {
         crate::counters::count_closest_hit();
-        traverse::intersect(&self.nodes, &self.packets, ray)
+        traverse::intersect(&self.nodes, &self.packets, ray, |_| true)
+    }
+
+    /// [`Bvh::intersect`] among the triangles `accept` takes (by their index
+    /// in the list given to [`Bvh::build`]); the others are transparent.
+    #[inline]
+    pub fn intersect_where(&self, ray: &Ray, accept: impl Fn(u32) -> bool) -> Option<Hit> {
+        crate::counters::count_closest_hit();
+        traverse::intersect(&self.nodes, &self.packets, ray, accept)
+    }
+
+    /// [`Bvh::intersect`], except that a back face yields to a front face
+    /// at most `tolerance` (in units of t) beyond it. `faces_the_ray` says
+    /// which triangles face the ray (the tree keeps no normals).
+    ///
+    /// Two surfaces in one plane facing away from each other (rooms
+    /// modelled as separate boxes that touch: each room's wall in the
+    /// plane of the next room's) tie along any ray, and the tree returns
+    /// whichever it meets first: from one side, now one room's wall, now
+    /// the back of the other's. A rasteriser that culls back faces shows
+    /// the front one, and a point on or just off that plane belongs to the
+    /// room the front face looks into.
+    pub fn intersect_front_first(
+        &self,
+        ray: &Ray,
+        tolerance: f32,
+        faces_the_ray: impl Fn(u32) -> bool,
+    ) -> Option<Hit> {
+        let hit = self.intersect(ray)?;
+        if faces_the_ray(hit.triangle) {
+            return Some(hit);
+        }
+        let within_tolerance = Ray {
+            t_max: (hit.t + tolerance).min(ray.t_max),
+            ..*ray
+        };
+        Some(
+            self.intersect_where(&within_tolerance, faces_the_ray)
+                .unwrap_or(hit),
+        )
     }
 
     /// Whether anything is hit with 0 < t < `ray.t_max`.

@@ -274,6 +274,21 @@ unsafe fn visit_nearest_first<L: Lanes>(
     order[0].1
 }
 
+/// The lanes of `mask` whose triangle `accept` takes.
+#[inline(always)]
+fn accepted_lanes(mask: u32, triangles: &[u32; 4], accept: &impl Fn(u32) -> bool) -> u32 {
+    let mut kept = 0;
+    let mut remaining = mask;
+    while remaining != 0 {
+        let lane = remaining.trailing_zeros();
+        remaining &= remaining - 1;
+        if accept(triangles[lane as usize]) {
+            kept |= 1 << lane;
+        }
+    }
+    kept
+}
+
 /// Non-finite origins or directions would turn slab distances into NaN,
 /// which the min/max chain does not reject; such rays hit nothing.
 #[inline(always)]
@@ -296,9 +311,14 @@ fn has_avx2() -> bool {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-fn intersect_avx2(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> Option<Hit> {
+fn intersect_avx2(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+    accept: impl Fn(u32) -> bool,
+) -> Option<Hit> {
     // SAFETY: AVX2 is enabled for this function.
-    unsafe { intersect_generic::<AvxLanes>(nodes, packets, ray) }
+    unsafe { intersect_generic::<AvxLanes>(nodes, packets, ray, accept) }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -315,15 +335,22 @@ fn occluded_avx2(
 
 /// The same traversal compiled for the baseline target and, on x86_64, with
 /// AVX2/FMA enabled (VEX encoding, wider register file use); picked per call.
+/// Only triangles `accept` takes count as hits; the unfiltered caller passes
+/// a closure that is constant true, which compiles the test away.
 #[inline]
-pub(crate) fn intersect(nodes: &[WideNode], packets: &[TrianglePacket], ray: &Ray) -> Option<Hit> {
+pub(crate) fn intersect(
+    nodes: &[WideNode],
+    packets: &[TrianglePacket],
+    ray: &Ray,
+    accept: impl Fn(u32) -> bool,
+) -> Option<Hit> {
     #[cfg(target_arch = "x86_64")]
     if has_avx2() {
         // SAFETY: the CPU supports the features the function is compiled for.
-        return unsafe { intersect_avx2(nodes, packets, ray) };
+        return unsafe { intersect_avx2(nodes, packets, ray, accept) };
     }
     // SAFETY: PortableLanes needs no CPU features beyond the target's.
-    unsafe { intersect_generic::<PortableLanes>(nodes, packets, ray) }
+    unsafe { intersect_generic::<PortableLanes>(nodes, packets, ray, accept) }
 }
 
 /// `occluder` is a triangle packet index tested before the traversal, and
@@ -355,6 +382,7 @@ unsafe fn intersect_generic<L: Lanes>(
     nodes: &[WideNode],
     packets: &[TrianglePacket],
     ray: &Ray,
+    accept: impl Fn(u32) -> bool,
 ) -> Option<Hit> {
     let mut t_max = ray.t_max;
     if !is_traceable(ray) {
@@ -373,7 +401,10 @@ unsafe fn intersect_generic<L: Lanes>(
                 let packet = unsafe { packets.get_unchecked(packet_index) };
                 if let Some(hits) = intersect_packet(&sheared, packet, t_max) {
                     let t = hits.t.to_array();
-                    let mut mask = hits.mask;
+                    let mut mask = accepted_lanes(hits.mask, &packet.triangles, &accept);
+                    if mask == 0 {
+                        continue;
+                    }
                     let mut closest_lane = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
                     while mask != 0 {
@@ -499,27 +530,39 @@ mod tests {
     use glam::Vec3;
     use relight_core::sampling::{uniform_sphere, Pcg32};
 
+    /// A thousand random triangles overlapping in a 10 m cube.
+    fn scattered_triangles(rng: &mut Pcg32) -> (Vec<Vec3>, Vec<[u32; 3]>) {
+        let positions = (0..3000)
+            .map(|_| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0)
+            .collect();
+        let triangles = (0..1000u32)
+            .map(|index| [3 * index, 3 * index + 1, 3 * index + 2])
+            .collect();
+        (positions, triangles)
+    }
+
+    /// A random ray from inside [`scattered_triangles`]' cube.
+    fn scattered_ray(rng: &mut Pcg32) -> Ray {
+        Ray {
+            origin: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0,
+            direction: uniform_sphere(rng.next_vec2()),
+            t_max: 1.0 + 20.0 * rng.next_f32(),
+        }
+    }
+
     /// The AVX and the portable lane types must give identical answers; the
     /// integration tests only reach the one the CPU selects.
     #[test]
     fn bvh_portable_and_dispatched_traversal_agree() {
         let mut rng = Pcg32::new(5, 1);
-        let positions: Vec<Vec3> = (0..3000)
-            .map(|_| Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0)
-            .collect();
-        let triangles: Vec<[u32; 3]> = (0..1000u32)
-            .map(|index| [3 * index, 3 * index + 1, 3 * index + 2])
-            .collect();
+        let (positions, triangles) = scattered_triangles(&mut rng);
         let bvh = Bvh::build(&positions, &triangles);
         for _ in 0..2000 {
-            let ray = Ray {
-                origin: Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 10.0,
-                direction: uniform_sphere(rng.next_vec2()),
-                t_max: 1.0 + 20.0 * rng.next_f32(),
-            };
+            let ray = scattered_ray(&mut rng);
             // SAFETY: PortableLanes needs no CPU features.
-            let portable =
-                unsafe { intersect_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray) };
+            let portable = unsafe {
+                intersect_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray, |_| true)
+            };
             let portable_occluded = unsafe {
                 occluded_generic::<PortableLanes>(&bvh.nodes, &bvh.packets, &ray, &mut {
                     crate::bvh::NO_OCCLUDER
@@ -528,6 +571,87 @@ mod tests {
             assert_eq!(portable, bvh.intersect(&ray));
             assert_eq!(portable_occluded, bvh.occluded(&ray));
         }
+    }
+
+    /// A filtered traversal answers as a tree built from the accepted
+    /// triangles alone would: the rejected ones neither hit nor shorten the
+    /// search of the others.
+    #[test]
+    fn a_filtered_traversal_equals_a_tree_of_the_accepted_triangles() {
+        let mut rng = Pcg32::new(11, 4);
+        let (positions, triangles) = scattered_triangles(&mut rng);
+        let bvh = Bvh::build(&positions, &triangles);
+        let accepted: Vec<u32> = (0..1000u32).filter(|index| index % 3 != 1).collect();
+        let accepted_triangles: Vec<[u32; 3]> = accepted
+            .iter()
+            .map(|&index| triangles[index as usize])
+            .collect();
+        let accepted_bvh = Bvh::build(&positions, &accepted_triangles);
+        let mut filtered_hits = 0;
+        for _ in 0..2000 {
+            let ray = scattered_ray(&mut rng);
+            let filtered = bvh.intersect_where(&ray, |triangle| triangle % 3 != 1);
+            let expected = accepted_bvh.intersect(&ray).map(|hit| Hit {
+                triangle: accepted[hit.triangle as usize],
+                ..hit
+            });
+            assert_eq!(filtered, expected);
+            let unfiltered = bvh.intersect(&ray);
+            if unfiltered.is_some_and(|hit| hit.triangle % 3 == 1) {
+                filtered_hits += 1;
+            }
+        }
+        // The rays must reach rejected triangles first often enough for the
+        // comparison to test the filter at all.
+        assert!(
+            filtered_hits > 100,
+            "{filtered_hits} rays met a rejected triangle first"
+        );
+    }
+
+    /// Two triangles in one plane facing away from each other: from either
+    /// side the one facing the ray is returned, whichever the traversal
+    /// meets first, and a back face with no front face near it stays.
+    #[test]
+    fn a_back_face_yields_to_a_coincident_front_face() {
+        let positions = vec![
+            Vec3::new(0.0, -1.0, -1.0),
+            Vec3::new(0.0, 1.0, -1.0),
+            Vec3::new(0.0, 0.0, 1.0),
+            Vec3::new(5.0, -1.0, -1.0),
+            Vec3::new(5.0, 1.0, -1.0),
+            Vec3::new(5.0, 0.0, 1.0),
+        ];
+        // 0 faces -x, 1 (the same corners, wound the other way) faces +x;
+        // 2 lies 5 m further along +x and faces -x.
+        let triangles = vec![[0, 2, 1], [0, 1, 2], [3, 5, 4]];
+        let normal = |triangle: u32| {
+            let [a, b, c] = triangles[triangle as usize].map(|index| positions[index as usize]);
+            (b - a).cross(c - a)
+        };
+        assert!(normal(0).x < 0.0 && normal(1).x > 0.0);
+        let bvh = Bvh::build(&positions, &triangles);
+        for (origin, direction, facing) in [(-1.0, 1.0, 0), (1.0, -1.0, 1)] {
+            let ray = Ray {
+                origin: Vec3::new(origin, 0.0, 0.0),
+                direction: Vec3::new(direction, 0.0, 0.0),
+                t_max: f32::INFINITY,
+            };
+            let faces = |triangle: u32| normal(triangle).dot(ray.direction) < 0.0;
+            let hit = bvh.intersect_front_first(&ray, 1e-3, faces).expect("hit");
+            assert_eq!(hit.triangle, facing, "from x = {origin}");
+            assert!((hit.t - 1.0).abs() < 1e-5);
+        }
+        // From x = 6 toward -x the first hit is the back of 2, and the
+        // front face behind it is 5 m away, not coincident.
+        let away = Ray {
+            origin: Vec3::new(6.0, 0.0, 0.0),
+            direction: Vec3::new(-1.0, 0.0, 0.0),
+            t_max: f32::INFINITY,
+        };
+        let faces = |triangle: u32| normal(triangle).dot(away.direction) < 0.0;
+        let hit = bvh.intersect_front_first(&away, 1e-3, faces).expect("hit");
+        assert_eq!(hit.triangle, 2, "a lone back face stays the hit");
     }
 
     /// The shadow cache may only save work: with the cache carried along a
