@@ -708,6 +708,17 @@ mod tests {
     use super::*;
     use crate::test_variants::{default_variant, default_variant_context};
 
+    /// The triangles of a generated variant's floor: level at y = 0,
+    /// facing up.
+    fn floor_triangles(mesh: &relight_scene::Mesh) -> Vec<usize> {
+        (0..mesh.triangles.len())
+            .filter(|&t| {
+                mesh.geometric_normal(t).y > 0.99
+                    && mesh.vertices(t).iter().all(|v| v.y.abs() < 1e-4)
+            })
+            .collect()
+    }
+
     /// Generated variant 97 is two rooms modelled as two boxes: each floor
     /// is its own quad, and the quads meet under the two boxes' coincident
     /// walls, with a doorway. One chart held both floors, so texels
@@ -721,12 +732,7 @@ mod tests {
     fn rooms_modelled_as_two_boxes_keep_their_floors_apart() {
         let context = default_variant_context(97);
         let mesh = &context.scene.mesh;
-        let floors: Vec<usize> = (0..mesh.triangles.len())
-            .filter(|&t| {
-                mesh.geometric_normal(t).y > 0.99
-                    && mesh.vertices(t).iter().all(|v| v.y.abs() < 1e-4)
-            })
-            .collect();
+        let floors = floor_triangles(mesh);
         let max_x = |t: usize| {
             mesh.vertices(t)
                 .iter()
@@ -801,21 +807,12 @@ mod tests {
     /// nearest the lamp's room still sits on the partition's plane.
     #[test]
     fn floor_receivers_at_two_boxes_shared_wall_stay_in_their_room() {
-        use relight_scene::generate::variants::variant;
-        let folder = tempfile::tempdir().expect("temporary folder");
-        let path = variant(7, 52)
-            .write(folder.path())
-            .expect("variant written");
+        let (_folder, path) = crate::test_variants::seeded_variant(7, 52);
         let scene = relight_scene::load_scene(&path).expect("variant loads");
         let context = SceneContext::new(scene, ContextSettings::default()).expect("context");
         let (mesh, receivers) = (&context.scene.mesh, &context.atlas.receivers);
         let texel = context.atlas.metres_per_texel;
-        let floors: Vec<usize> = (0..mesh.triangles.len())
-            .filter(|&t| {
-                mesh.geometric_normal(t).y > 0.99
-                    && mesh.vertices(t).iter().all(|v| v.y.abs() < 1e-4)
-            })
-            .collect();
+        let floors = floor_triangles(mesh);
         let min_x = |t: usize| {
             mesh.vertices(t)
                 .iter()

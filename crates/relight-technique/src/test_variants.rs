@@ -5,9 +5,16 @@ use crate::{ContextSettings, SceneContext};
 /// Variant `index` of the generated default family, written to a
 /// temporary folder that lives as long as the returned guard.
 pub(crate) fn default_variant(index: usize) -> (tempfile::TempDir, std::path::PathBuf) {
-    use relight_scene::generate::variants::{variant, VARIANTS_DEFAULT_SEED};
+    seeded_variant(
+        relight_scene::generate::variants::VARIANTS_DEFAULT_SEED,
+        index,
+    )
+}
+
+/// Variant `index` of the generated family of `seed`, as [`default_variant`].
+pub(crate) fn seeded_variant(seed: u64, index: usize) -> (tempfile::TempDir, std::path::PathBuf) {
     let folder = tempfile::tempdir().expect("temporary folder");
-    let path = variant(VARIANTS_DEFAULT_SEED, index)
+    let path = relight_scene::generate::variants::variant(seed, index)
         .write(folder.path())
         .expect("variant written");
     (folder, path)
