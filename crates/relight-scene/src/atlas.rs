@@ -10,6 +10,8 @@
 //! grow across an edge that a surface stands on ([`Atlas::build_between_walls`]):
 //! two rooms' floors that meet under a partition get charts of their own, so
 //! no texel straddles the partition and shows one room's light in the other.
+//! Nor across a seam the loader cut where a partition stands on one slab
+//! under both rooms ([`Scene::lightmap_seams`], [`crate::seams`]).
 //!
 //! Receivers are the texels that cover geometry. Rasterisation is
 //! conservative: a texel is covered when its square overlaps a triangle, so
@@ -307,8 +309,9 @@ impl Atlas {
         // parts (column bases, mouldings) stand on many short edges.
         let mut split_at_walls = false;
         if let Some(walls) = walls {
-            let walled =
+            let mut walled =
                 graph.walled_edges(scene, &rings, walls, WALL_EDGE_TEXELS * metres_per_texel);
+            walled.extend(graph.seam_edges(&scene.lightmap_seams));
             if !walled.is_empty() {
                 let split = grow_charts(scene, &rings, &graph, &walled);
                 split_at_walls = split.len() > charts.len();
@@ -985,6 +988,8 @@ fn refine_near_lights(
 /// so meshes with split vertices still connect: built once, grown into
 /// charts with and without walls.
 struct EdgeGraph {
+    /// Welded vertex of each position's bits.
+    welded: HashMap<[u32; 3], u32>,
     vertex_id: Vec<u32>,
     /// Per welded vertex, its position.
     welded_positions: Vec<Vec3>,
@@ -1024,11 +1029,26 @@ impl EdgeGraph {
             .map(|t| mesh.geometric_normal(t))
             .collect();
         Self {
+            welded,
             vertex_id,
             welded_positions,
             edge_triangles,
             normals,
         }
+    }
+
+    /// The mesh's edges among `seams` (pairs of vertex positions, bit for
+    /// bit; [`Scene::lightmap_seams`]).
+    fn seam_edges(&self, seams: &[[Vec3; 2]]) -> HashSet<(u32, u32)> {
+        let id = |p: Vec3| self.welded.get(&p.to_array().map(f32::to_bits)).copied();
+        seams
+            .iter()
+            .filter_map(|&[a, b]| {
+                let (a, b) = (id(a)?, id(b)?);
+                let edge = (a.min(b), a.max(b));
+                self.edge_triangles.contains_key(&edge).then_some(edge)
+            })
+            .collect()
     }
 
     /// The edges of two triangles a chart could join (area, ring, normals

@@ -51,6 +51,10 @@ pub struct LightmapLayout {
     /// Charts near the scene file's point and spot lights get finer texels
     /// (`refine_near_lights`, on unless set to false).
     pub refine_near_lights: bool,
+    /// Surfaces are cut along the feet of walls that stand on them, so
+    /// the atlas's charts end there (`cut_under_walls`, on unless set to
+    /// false; see [`crate::seams`]).
+    pub cut_under_walls: bool,
 }
 
 impl Default for LightmapLayout {
@@ -59,6 +63,7 @@ impl Default for LightmapLayout {
             detail: LightmapDetail::default(),
             margin: None,
             refine_near_lights: true,
+            cut_under_walls: true,
         }
     }
 }
@@ -261,24 +266,7 @@ pub fn split_for_detail(
             }
             Some(()) => {
                 cut += 1;
-                let corners = mesh.triangles[triangle];
-                let normal = mesh.geometric_normal(triangle);
-                let smallest = mesh.area(triangle) * 1e-7;
-                for polygon in &polygons {
-                    for fan in 1..polygon.len().saturating_sub(1) {
-                        let piece = [polygon[0], polygon[fan], polygon[fan + 1]];
-                        let doubled = (piece[1].position - piece[0].position)
-                            .cross(piece[2].position - piece[0].position);
-                        // Cuts through a vertex leave slivers of no area, and
-                        // rounding can flip one: neither covers anything.
-                        if 0.5 * doubled.length() <= smallest || doubled.dot(normal) <= 0.0 {
-                            continue;
-                        }
-                        let indices = piece.map(|corner| push_vertex(mesh, corners, corner) as u32);
-                        triangles.push(indices);
-                        material_ids.push(material);
-                    }
-                }
+                push_pieces(mesh, triangle, &polygons, &mut triangles, &mut material_ids);
             }
         }
         pieces_of.push(first..triangles.len() as u32);
@@ -291,9 +279,61 @@ pub fn split_for_detail(
 /// A polygon corner: its position and its barycentric (b1, b2) on the
 /// triangle being cut.
 #[derive(Clone, Copy, Debug)]
-struct Corner {
-    position: Vec3,
-    barycentric: Vec2,
+pub(crate) struct Corner {
+    pub position: Vec3,
+    pub barycentric: Vec2,
+}
+
+impl Corner {
+    /// The corners of `triangle` as the polygon a cut starts from.
+    pub(crate) fn of_triangle(mesh: &Mesh, triangle: usize) -> Vec<Corner> {
+        let [a, b, c] = mesh.vertices(triangle);
+        vec![
+            Corner {
+                position: a,
+                barycentric: Vec2::ZERO,
+            },
+            Corner {
+                position: b,
+                barycentric: Vec2::X,
+            },
+            Corner {
+                position: c,
+                barycentric: Vec2::Y,
+            },
+        ]
+    }
+}
+
+/// Appends the pieces `polygons` (convex, in the plane of `triangle`) as
+/// fans of triangles with `triangle`'s material, their vertices added to
+/// the mesh.
+pub(crate) fn push_pieces(
+    mesh: &mut Mesh,
+    triangle: usize,
+    polygons: &[Vec<Corner>],
+    triangles: &mut Vec<[u32; 3]>,
+    material_ids: &mut Vec<u32>,
+) {
+    let material = mesh.material_ids[triangle];
+    let corners = mesh.triangles[triangle];
+    let normal = mesh.geometric_normal(triangle);
+    let smallest = mesh.area(triangle) * 1e-7;
+    for polygon in polygons {
+        for fan in 1..polygon.len().saturating_sub(1) {
+            let piece = [polygon[0], polygon[fan], polygon[fan + 1]];
+            let doubled = (piece[1].position - piece[0].position)
+                .cross(piece[2].position - piece[0].position);
+            // Cuts through a vertex leave slivers of no area, and
+            // rounding can flip one: neither covers anything.
+            if 0.5 * doubled.length() <= smallest || doubled.dot(normal) <= 0.0 {
+                continue;
+            }
+            let indices = piece.map(|corner| push_vertex(mesh, corners, corner) as u32);
+            triangles.push(indices);
+            material_ids.push(material);
+        }
+    }
 }
 
 /// Cuts `triangle` into `polygons` when it spans rings and is long enough
@@ -319,20 +359,7 @@ fn cut_triangle(
         return None;
     }
     polygons.clear();
-    polygons.push(vec![
-        Corner {
-            position: a,
-            barycentric: Vec2::ZERO,
-        },
-        Corner {
-            position: b,
-            barycentric: Vec2::X,
-        },
-        Corner {
-            position: c,
-            barycentric: Vec2::Y,
-        },
-    ]);
+    polygons.push(Corner::of_triangle(mesh, triangle));
     let (low, high) = (a.min(b).min(c), a.max(b).max(c));
     for axis in 0..3 {
         for plane in region.planes(axis) {
@@ -396,7 +423,7 @@ fn crossing(p: Corner, q: Corner, axis: usize, plane: f32) -> Corner {
 
 /// Appends a vertex at `corner` of the triangle with vertex indices
 /// `corners`, its UV sets interpolated; returns its index.
-fn push_vertex(mesh: &mut Mesh, corners: [u32; 3], corner: Corner) -> usize {
+pub(crate) fn push_vertex(mesh: &mut Mesh, corners: [u32; 3], corner: Corner) -> usize {
     let [b1, b2] = corner.barycentric.to_array();
     let weights = [1.0 - b1 - b2, b1, b2];
     let interpolate = |values: &[Vec2]| {

@@ -9,7 +9,9 @@
 //! on which every technique stores, and is measured on, indirect light;
 //! [`detail`] decides where the atlas spends its texels (full density where
 //! the scene's detail is, coarser outside), cutting at load the few huge
-//! triangles that reach far out, such as a ground plane.
+//! triangles that reach far out, such as a ground plane; [`seams`] cuts
+//! surfaces along the feet of the walls that stand on them, so that the
+//! atlas's charts end there.
 //! Lights are the only part of a scene that changes from frame to frame.
 
 pub mod atlas;
@@ -21,6 +23,7 @@ mod mesh_input;
 mod model;
 mod obj_loader;
 mod scene_file;
+pub mod seams;
 
 pub use error::SceneError;
 pub use model::*;

@@ -300,6 +300,11 @@ pub struct Scene {
     /// uniform; a scene built in code may keep `Automatic`, which each use
     /// finds from the mesh.
     pub lightmap_layout: crate::detail::LightmapLayout,
+    /// Edges where the lightmap's charts end, as pairs of vertex positions
+    /// (bit for bit the mesh's): the lines walls stand on, where the
+    /// loader cut the surfaces under them ([`crate::seams`]). Empty for a
+    /// scene built in code.
+    pub lightmap_seams: Vec<[Vec3; 2]>,
 }
 
 /// One triangle-list primitive of a glTF mesh as one node places it.

@@ -106,6 +106,7 @@ struct RawLightmap {
     detail_max: Option<Spanned3>,
     detail_margin: Option<Spanned<f32>>,
     refine_near_lights: Option<bool>,
+    cut_under_walls: Option<bool>,
 }
 
 /// 1-based line of a byte offset, for error messages.
@@ -232,6 +233,7 @@ impl TextSource<'_> {
             detail,
             margin,
             refine_near_lights: raw.refine_near_lights.unwrap_or(true),
+            cut_under_walls: raw.cut_under_walls.unwrap_or(true),
         })
     }
 
@@ -597,6 +599,17 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         &file.mesh,
         &mut warnings,
     );
+    let lightmap_seams = if lightmap_layout.cut_under_walls && mesh.lightmap_uvs.is_empty() {
+        cut_under_walls(
+            &mut mesh,
+            &materials,
+            &mut gltf_primitives,
+            &file.mesh,
+            &mut warnings,
+        )
+    } else {
+        Vec::new()
+    };
 
     lights.extend(file.lights);
     let camera = match (file.camera, mesh_camera) {
@@ -624,7 +637,65 @@ fn finish_scene(file: SceneFile, loaded: LoadedMesh) -> Result<Scene, SceneError
         technique_sections: file.extra,
         gltf_primitives,
         lightmap_layout,
+        lightmap_seams,
     })
+}
+
+/// Cuts the surfaces walls stand on along the walls' feet
+/// ([`crate::seams`]) and returns the seams. A glTF triangle that was cut
+/// no longer maps to one scene triangle, as in [`cut_for_lightmap_detail`].
+fn cut_under_walls(
+    mesh: &mut Mesh,
+    materials: &[Material],
+    gltf_primitives: &mut [crate::GltfPrimitive],
+    mesh_path: &Path,
+    warnings: &mut Vec<String>,
+) -> Vec<[Vec3; 2]> {
+    let emissive = |material: u32| materials[material as usize].emission.max_element() > 0.0;
+    let cut = crate::seams::cut_under_walls(mesh, emissive);
+    if cut.cut == 0 {
+        return cut.seams;
+    }
+    tracing::info!(
+        "{}: cut {} triangle(s) along {} line(s) where walls stand on them, so that no lightmap texel straddles a wall (`[lightmap] cut_under_walls = false` keeps them whole)",
+        mesh_path.display(),
+        cut.cut,
+        cut.lines,
+    );
+    let unmapped = remap_cut_primitives(gltf_primitives, &cut.pieces_of);
+    if unmapped > 0 {
+        warn(
+            warnings,
+            format!(
+                "{}: {unmapped} glTF triangle(s) that walls stand on were cut along the walls' feet; an engine adopting this file gets no lightmap on them: set `[lightmap] cut_under_walls = false` to keep them whole (light may then show through the walls' feet)",
+                mesh_path.display()
+            ),
+        );
+    }
+    cut.seams
+}
+
+/// Points each glTF triangle at the one piece it became; a triangle cut
+/// into several maps to none. Returns how many were cut.
+fn remap_cut_primitives(
+    gltf_primitives: &mut [crate::GltfPrimitive],
+    pieces_of: &[std::ops::Range<u32>],
+) -> usize {
+    let mut unmapped = 0;
+    for primitive in gltf_primitives.iter_mut() {
+        for triangle in primitive.triangles.iter_mut() {
+            *triangle = triangle.and_then(|old| {
+                let pieces = &pieces_of[old as usize];
+                if pieces.len() == 1 {
+                    Some(pieces.start)
+                } else {
+                    unmapped += 1;
+                    None
+                }
+            });
+        }
+    }
+    unmapped
 }
 
 /// Cuts the triangles that reach from the detail region far out (see
@@ -675,20 +746,7 @@ fn cut_for_lightmap_detail(
         region.margin,
         region.describe_box(),
     );
-    let mut unmapped = 0;
-    for primitive in gltf_primitives.iter_mut() {
-        for triangle in primitive.triangles.iter_mut() {
-            *triangle = triangle.and_then(|old| {
-                let pieces = &split.pieces_of[old as usize];
-                if pieces.len() == 1 {
-                    Some(pieces.start)
-                } else {
-                    unmapped += 1;
-                    None
-                }
-            });
-        }
-    }
+    let unmapped = remap_cut_primitives(gltf_primitives, &split.pieces_of);
     if unmapped > 0 {
         warn(
             warnings,

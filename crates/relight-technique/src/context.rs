@@ -868,6 +868,79 @@ mod tests {
         );
     }
 
+    /// Generated variant 1 is two rooms in one shell: one floor quad runs
+    /// under both and a 13 cm partition with a doorway stands on it, the
+    /// lamp in one room and the camera in the other. Before the loader cut
+    /// the floor along the partition's feet, its chart was one projection
+    /// across the partition: floor points 2 cm either side of it lay 0.8
+    /// texels apart in the lightmap, so the texels at the foot straddled
+    /// the partition, each holding one side's light for both (a bright
+    /// line along the unlit room's wall foot). Now the two sides are
+    /// different charts, and a chart's gutter keeps every bilinear lookup
+    /// from the next chart's texels: such points lie more than the gutter
+    /// apart, all along the partition, doorway included.
+    #[test]
+    fn a_slab_under_a_partition_is_two_charts() {
+        let context = default_variant_context(1);
+        let (scene, atlas) = (&context.scene, &context.atlas);
+        let lamp = match scene.lights.as_slice() {
+            [relight_scene::Light::Point { position, .. }] => *position,
+            other => panic!("variant 1 has one point light, not {other:?}"),
+        };
+        let eye = scene.camera.eye;
+        assert!(
+            lamp.x < eye.x,
+            "the lamp and the camera are in different rooms"
+        );
+        // The partition's faces: the walls between the lamp and the camera
+        // that reach over a door's height (the objects in the rooms are
+        // lower), facing the camera's room and, nearest that, the lamp's.
+        let tall_walls = |facing: f32| {
+            (0..scene.mesh.triangles.len())
+                .filter(move |&t| scene.mesh.geometric_normal(t).x * facing > 0.99)
+                .filter(|&t| scene.mesh.vertices(t).iter().any(|v| v.y > 1.9))
+                .map(|t| scene.mesh.vertices(t)[0].x)
+                .filter(|&x| x > lamp.x && x < eye.x)
+        };
+        let unlit_face = tall_walls(1.0).fold(f32::MIN, f32::max);
+        let lit_face = tall_walls(-1.0)
+            .filter(|&x| x < unlit_face)
+            .fold(f32::MIN, f32::max);
+        assert!(
+            unlit_face > lit_face && unlit_face - lit_face < 0.5,
+            "partition faces at x = {lit_face} and {unlit_face}"
+        );
+        let width = scene.mesh.bounds().1.z.min(6.0);
+        let uv_at = |x: f32, z: f32| {
+            let hit = context.bvh.intersect(&Ray {
+                origin: Vec3::new(x, 0.05, z),
+                direction: -Vec3::Y,
+                t_max: 0.1,
+            })?;
+            (scene.mesh.geometric_normal(hit.triangle as usize).y > 0.99)
+                .then(|| atlas.uv_of(hit.triangle, hit.barycentric))
+        };
+        let mut pairs = 0;
+        let mut z = 0.1;
+        while z < width - 0.1 {
+            if let (Some(lit), Some(unlit)) =
+                (uv_at(lit_face - 0.02, z), uv_at(unlit_face + 0.02, z))
+            {
+                pairs += 1;
+                let apart = lit.distance(unlit);
+                assert!(
+                    apart > relight_scene::atlas::GUTTER_TEXELS as f32,
+                    "floor points 2 cm either side of the partition at z = {z} are {apart} texels apart in the lightmap"
+                );
+            }
+            z += 0.05;
+        }
+        assert!(
+            pairs > 80,
+            "{pairs} pairs of floor points along the partition"
+        );
+    }
+
     /// Generated variant 38 is a hall whose single-plane walls, floor and
     /// ceiling run 0.5 m past each other, all cut into 0.68 m cells, with
     /// boxes standing flush on the floor and 9 mm into it. A ceiling
