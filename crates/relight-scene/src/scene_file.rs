@@ -662,25 +662,24 @@ fn cut_under_walls(
         cut.cut,
         cut.lines,
     );
-    let unmapped = remap_cut_primitives(gltf_primitives, &cut.pieces_of);
-    if unmapped > 0 {
-        warn(
-            warnings,
-            format!(
-                "{}: {unmapped} glTF triangle(s) that walls stand on were cut along the walls' feet; an engine adopting this file gets no lightmap on them: set `[lightmap] cut_under_walls = false` to keep them whole (light may then show through the walls' feet)",
-                mesh_path.display()
-            ),
-        );
-    }
+    remap_cut_primitives(gltf_primitives, &cut.pieces_of, warnings, |unmapped| {
+        format!(
+            "{}: {unmapped} glTF floor or ceiling triangle(s) that walls stand on were cut along the walls' feet; an engine adopting this file gets no lightmap on them: set `[lightmap] cut_under_walls = false` to keep them whole (light may then show through the walls' feet)",
+            mesh_path.display()
+        )
+    });
     cut.seams
 }
 
 /// Points each glTF triangle at the one piece it became; a triangle cut
-/// into several maps to none. Returns how many were cut.
+/// into several maps to none, and where any did, `warning` (given their
+/// count) is warned.
 fn remap_cut_primitives(
     gltf_primitives: &mut [crate::GltfPrimitive],
     pieces_of: &[std::ops::Range<u32>],
-) -> usize {
+    warnings: &mut Vec<String>,
+    warning: impl FnOnce(usize) -> String,
+) {
     let mut unmapped = 0;
     for primitive in gltf_primitives.iter_mut() {
         for triangle in primitive.triangles.iter_mut() {
@@ -695,7 +694,9 @@ fn remap_cut_primitives(
             });
         }
     }
-    unmapped
+    if unmapped > 0 {
+        warn(warnings, warning(unmapped));
+    }
 }
 
 /// Cuts the triangles that reach from the detail region far out (see
@@ -746,16 +747,12 @@ fn cut_for_lightmap_detail(
         region.margin,
         region.describe_box(),
     );
-    let unmapped = remap_cut_primitives(gltf_primitives, &split.pieces_of);
-    if unmapped > 0 {
-        warn(
-            warnings,
-            format!(
-                "{}: {unmapped} glTF triangle(s) reaching far outside the detail region were cut for a coarser lightmap there; an engine adopting this file gets no lightmap on them: set `[lightmap] detail = \"uniform\"` (or a `detail = \"box\"` that holds them) to keep them whole",
-                mesh_path.display()
-            ),
-        );
-    }
+    remap_cut_primitives(gltf_primitives, &split.pieces_of, warnings, |unmapped| {
+        format!(
+            "{}: {unmapped} glTF triangle(s) reaching far outside the detail region were cut for a coarser lightmap there; an engine adopting this file gets no lightmap on them: set `[lightmap] detail = \"uniform\"` (or a `detail = \"box\"` that holds them) to keep them whole",
+            mesh_path.display()
+        )
+    });
     fixed
 }
 

@@ -13,9 +13,9 @@
 //! texels, and no chart boundary can be drawn where the mesh has no edge.
 //!
 //! So at load, [`cut_under_walls`] finds the feet: the edges of triangles
-//! that lie in the plane of another triangle, over it, turned from it by
-//! more than 60 degrees and rising on its front side (a wall on a floor,
-//! a partition under a ceiling, a storey's slab against an outer wall).
+//! that lie in the plane of a level triangle (a floor or a ceiling), over
+//! it, turned from it by more than 60 degrees and rising on its front side
+//! (a wall on a floor, a partition under a ceiling).
 //! Collinear feet in one plane make a line; a line whose feet run at least
 //! [`LEAST_FOOT_M`] and cover at least [`LEAST_COVER`] of its span (a
 //! partition with its doorway; not a chair leg) cuts every triangle of
@@ -25,6 +25,8 @@
 //! a seam ([`Scene::lightmap_seams`](crate::Scene)) where the atlas stops
 //! its charts. A line that crosses a triangle past its span's ends leaves
 //! that triangle whole: cutting it would draw a seam across open floor.
+//! Walls are not cut ([`LEVEL_COS`]), so one outer wall quad that runs
+//! past a partition's end still has texels straddling it.
 
 use crate::detail::{push_pieces, Corner};
 use crate::Mesh;
@@ -47,6 +49,13 @@ pub const LEAST_COVER: f32 = 0.25;
 /// A surface stands on a plane when it turns from it by more than 60
 /// degrees, as the atlas's wall probes judge walls.
 const STANDING_COS: f32 = 0.5;
+
+/// Only level surfaces are cut, floors and ceilings (normal within about
+/// 25 degrees of relight's up axis, +y, as in glTF): they are what rooms
+/// share in plan. Cutting walls too (at a partition's end against an outer
+/// wall, but also along every window frame and moulding) made a furnished
+/// room's walls worse for no gain on the generated suites.
+const LEVEL_COS: f32 = 0.9;
 
 /// Coplanar surfaces to cut face the same way as the surface the feet were
 /// found on (about 8 degrees): a slab's underside is another surface.
@@ -395,7 +404,7 @@ fn wall_lines(mesh: &Mesh, grid: &TriangleGrid, tolerance: f32) -> Vec<WallLine>
                     let floor = floor as usize;
                     let normal = normals[floor];
                     if floor == wall
-                        || normal == Vec3::ZERO
+                        || normal.y.abs() < LEVEL_COS
                         || normal.dot(normals[wall]).abs() >= STANDING_COS
                     {
                         continue;

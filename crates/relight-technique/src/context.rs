@@ -542,6 +542,11 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     |wall: &Option<(f32, Vec3)>| wall.map_or(f32::INFINITY, |(d, _)| d);
                 walls.sort_by(|a, b| wall_distance(a).total_cmp(&wall_distance(b)));
                 let (mut crossing, mut covered) = (None, false);
+                // A wall the receiver stands on from behind, whose far side
+                // is another chart: the loader cut this surface along the
+                // wall's foot ([`relight_scene::seams`]), so the receiver
+                // belongs on this side.
+                let mut backed_on_seam: Option<(f32, Vec3)> = None;
                 for &(distance, direction) in walls.iter().flatten() {
                     // The middle of what is left of the texel beyond the
                     // wall, so the receiver stands for its visible part.
@@ -573,10 +578,27 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         crossing = Some(moved);
                         break;
                     }
+                    if distance < margin && backed_on_seam.is_none() {
+                        backed_on_seam = Some((distance, direction));
+                    }
                 }
                 if let Some(moved) = crossing {
                     *position = moved;
                 } else if covered {
+                    break;
+                } else if let (0, Some((distance, direction))) = (pass, backed_on_seam) {
+                    // On the wall's foot line, behind it (the sunlit floor
+                    // outside a one-sided wall): the middle of the texel's
+                    // side away from the wall, as for a wall that faces
+                    // it, if its own surface reaches there; left on the
+                    // line, its shadow and gather rays set out through the
+                    // wall's foot.
+                    let away = *position - direction * ((0.5 * texel - distance) * 0.5);
+                    if planar_barycentric(corners, away)
+                        .is_some_and(|(b, c)| b >= 0.0 && c >= 0.0 && b + c <= 1.0)
+                    {
+                        *position = away;
+                    }
                     break;
                 } else if let (0, Some((distance, direction))) = (pass, touching) {
                     // On the line where another surface meets this one (a
@@ -739,12 +761,32 @@ mod tests {
                 .map(|v| v.x)
                 .fold(f32::MIN, f32::max)
         };
-        let partition = floors.iter().map(|&t| max_x(t)).fold(f32::MAX, f32::min);
+        // The partition: where walls facing both ways along x stand in one
+        // plane. (The floors' own pieces do not tell: the loader cuts a
+        // floor along the foot of an object standing on it.)
+        let wall_planes = |facing: f32| {
+            (0..mesh.triangles.len())
+                .filter(move |&t| mesh.geometric_normal(t).x * facing > 0.99)
+                .map(|t| mesh.vertices(t)[0].x)
+                .collect::<Vec<f32>>()
+        };
+        let facing_back = wall_planes(-1.0);
+        let (floor_low, floor_high) = floors
+            .iter()
+            .flat_map(|&t| mesh.vertices(t))
+            .fold((f32::MAX, f32::MIN), |(low, high), v| {
+                (low.min(v.x), high.max(v.x))
+            });
+        let partition = wall_planes(1.0)
+            .into_iter()
+            .filter(|&x| x > floor_low + 0.1 && x < floor_high - 0.1)
+            .find(|x| facing_back.iter().any(|back| (back - x).abs() < 1e-4))
+            .expect("coincident walls facing both ways between the floors' ends");
         let (first, second): (Vec<usize>, Vec<usize>) =
             floors.iter().partition(|&&t| max_x(t) <= partition + 1e-4);
         assert!(
             !first.is_empty() && !second.is_empty(),
-            "two floors: {floors:?}"
+            "two floors either side of x = {partition}: {floors:?}"
         );
         let walls_there = (0..mesh.triangles.len())
             .filter(|&t| {
