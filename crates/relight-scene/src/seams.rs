@@ -55,7 +55,7 @@ const STANDING_COS: f32 = 0.5;
 /// share in plan. Cutting walls too (at a partition's end against an outer
 /// wall, but also along every window frame and moulding) made a furnished
 /// room's walls worse for no gain on the generated suites.
-const LEVEL_COS: f32 = 0.9;
+pub const LEVEL_COS: f32 = 0.9;
 
 /// Coplanar surfaces to cut face the same way as the surface the feet were
 /// found on (about 8 degrees): a slab's underside is another surface.
