@@ -2,8 +2,7 @@
 //! that the lightmap's charts can end there.
 //!
 //! A model that lays one floor slab under every room (or one ceiling over
-//! them, or one long outer wall past a partition's end) has no edge where
-//! a partition stands on it. A chart grown over the slab is one planar
+//! them) has no edge where a partition stands on it. A chart grown over the slab is one planar
 //! projection, so the texels along the partition's foot straddle it: each
 //! holds one receiver on one side, and a bilinear lookup in the other
 //! room, within a texel of the wall, reads a share of it (a generated
@@ -71,9 +70,9 @@ const SHORTEST_FOOT_EDGE_M: f32 = 0.05;
 const MOST_CELLS: usize = 1024;
 
 /// What [`cut_under_walls`] did: for each triangle before, the range of
-/// triangles it became; how many triangles were cut; and the seams, the
-/// edges on the lines walls stand on, as pairs of vertex positions, bit for
-/// bit those of the mesh's vertices.
+/// triangles it became; how many triangles were cut along how many lines;
+/// and the seams, the edges on those lines, as pairs of vertex positions,
+/// bit for bit those of the mesh's vertices.
 pub struct WallCut {
     pub pieces_of: Vec<Range<u32>>,
     pub cut: usize,
