@@ -188,14 +188,14 @@ impl TriangleGrid {
 /// keep the triangle's winding and material; their UVs are interpolated.
 pub fn cut_under_walls(mesh: &mut Mesh, emissive: impl Fn(u32) -> bool + Sync) -> WallCut {
     let triangle_count = mesh.triangles.len();
-    let unchanged = |lines| WallCut {
+    let unchanged = || WallCut {
         pieces_of: (0..triangle_count as u32).map(|t| t..t + 1).collect(),
         cut: 0,
-        lines,
+        lines: 0,
         seams: Vec::new(),
     };
     if triangle_count == 0 {
-        return unchanged(0);
+        return unchanged();
     }
     let (low, high) = mesh.bounds();
     let extent = (high - low).max_element();
@@ -203,9 +203,12 @@ pub fn cut_under_walls(mesh: &mut Mesh, emissive: impl Fn(u32) -> bool + Sync) -
     // a large model's coordinates round coarser.
     let tolerance = 2e-4 + 1e-5 * extent;
     let grid = TriangleGrid::new(mesh, low, extent);
-    let lines = wall_lines(mesh, &grid, tolerance);
+    let normals: Vec<Vec3> = (0..triangle_count)
+        .map(|t| mesh.geometric_normal(t))
+        .collect();
+    let lines = wall_lines(mesh, &normals, &grid, tolerance);
     if lines.is_empty() {
-        return unchanged(0);
+        return unchanged();
     }
     // Each line's triangles: in its plane, facing its way, near its span.
     let mut lines_of: Vec<Vec<u32>> = vec![Vec::new(); triangle_count];
@@ -228,7 +231,7 @@ pub fn cut_under_walls(mesh: &mut Mesh, emissive: impl Fn(u32) -> bool + Sync) -
                 .iter()
                 .all(|v| (line.normal.dot(*v) - line.offset).abs() <= tolerance);
             if in_plane
-                && mesh.geometric_normal(t).dot(line.normal) >= SAME_PLANE_COS
+                && normals[t].dot(line.normal) >= SAME_PLANE_COS
                 && !emissive(mesh.material_ids[t])
             {
                 lines_of[t].push(index as u32);
@@ -379,10 +382,7 @@ struct Foot {
 }
 
 /// Finds every foot and gathers the qualifying lines, in a fixed order.
-fn wall_lines(mesh: &Mesh, grid: &TriangleGrid, tolerance: f32) -> Vec<WallLine> {
-    let normals: Vec<Vec3> = (0..mesh.triangles.len())
-        .map(|t| mesh.geometric_normal(t))
-        .collect();
+fn wall_lines(mesh: &Mesh, normals: &[Vec3], grid: &TriangleGrid, tolerance: f32) -> Vec<WallLine> {
     let feet: Vec<Foot> = (0..mesh.triangles.len())
         .into_par_iter()
         .map_init(Vec::new, |near, wall| {

@@ -478,6 +478,18 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
             // crosses one.
             for pass in 0..3 {
                 let origin = *position + normal * lift;
+                // Whether the receiver's triangle stops before `offset`
+                // from it.
+                let here = *position;
+                let leaves = |offset: Vec3| {
+                    planar_barycentric(corners, here + offset)
+                        .is_some_and(|(b, c)| b < 0.0 || c < 0.0 || b + c > 1.0)
+                };
+                // From the line where a wall meets this surface, `distance`
+                // along `direction` ahead, to the middle of the texel's
+                // side away from it.
+                let off_the_line =
+                    |distance: f32, direction: Vec3| -direction * ((0.5 * texel - distance) * 0.5);
                 // Walls met from behind, by step: (distance, direction).
                 let mut behind = [None::<(f32, Vec3)>; 8];
                 let mut touching: Option<(f32, Vec3)> = None;
@@ -511,12 +523,6 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                         // nothing about which side the receiver is on.
                         continue;
                     }
-                    // Whether the receiver's triangle stops before
-                    // `offset` from it.
-                    let leaves = |offset: Vec3| {
-                        planar_barycentric(corners, *position + offset)
-                            .is_some_and(|(b, c)| b < 0.0 || c < 0.0 || b + c > 1.0)
-                    };
                     if cosine > 0.0 {
                         // A wall behind the start point faces away from
                         // the receiver on this side of it.
@@ -593,18 +599,16 @@ pub fn relocate_receivers(scene: &Scene, bvh: &Bvh, atlas: &mut Atlas) {
                     // it, if its own surface reaches there; left on the
                     // line, its shadow and gather rays set out through the
                     // wall's foot.
-                    let away = *position - direction * ((0.5 * texel - distance) * 0.5);
-                    if planar_barycentric(corners, away)
-                        .is_some_and(|(b, c)| b >= 0.0 && c >= 0.0 && b + c <= 1.0)
-                    {
-                        *position = away;
+                    let away = off_the_line(distance, direction);
+                    if !leaves(away) {
+                        *position += away;
                     }
                     break;
                 } else if let (0, Some((distance, direction))) = (pass, touching) {
                     // On the line where another surface meets this one (a
                     // chart edge through the texel centre): the middle of
                     // the texel's side that faces away from it.
-                    *position -= direction * ((0.5 * texel - distance) * 0.5);
+                    *position += off_the_line(distance, direction);
                     break;
                 } else if pass == 0 && walls.iter().all(Option::is_none) && under_cover(*position) {
                     // Under an object that stands a few millimetres above
