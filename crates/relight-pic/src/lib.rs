@@ -136,7 +136,11 @@
 //!   the sunlit court above the roof line. A receiver or surfel now drops
 //!   the bilinear taps whose caches it cannot see (one ray each, at load;
 //!   both ends a tenth of a cache texel off their surfaces), and shading
-//!   adds the difference as a correction lightmap. Sponza (sun), PIC high:
+//!   reads the receivers' lightmap wherever its bilinear footprint touches
+//!   such a receiver (a correction lightmap added to the per-point cache
+//!   lookup there, as first built, shaded black strips where the lookup
+//!   changes sharply within a texel: beside a wall corner whose cache
+//!   texel straddles the corner). Sponza (sun), PIC high:
 //!   lightmap 45.7 -> 23.7 %, interior 1.28 -> 0.99x, points in space
 //!   15.3 -> 13.5 % (1.04 -> 0.99x); camera-visible lightmap 19.9 ->
 //!   20.0 % and tiles 14.7 -> 14.8 % (the camera sees no attic). Two-rooms

@@ -70,13 +70,13 @@ pub struct Pic {
     hidden_tap_receivers: Vec<u32>,
     hidden_tap_taps: Vec<[(u32, f32); 4]>,
     hidden_tap_index: Vec<u32>,
-    /// Per frame: what dropping the hidden taps changes at those
-    /// receivers, as a dilated lightmap that shading adds to the
-    /// bilinear cache lookup.
-    tap_correction: Vec<Rgb>,
-    /// The atlas's dilation pairs for those receivers' texels
-    /// ([`Atlas::dilation_from`]): the rest of the map stays zero.
-    tap_dilation: Vec<(u32, u32)>,
+    /// The receiver each scene-atlas texel shows
+    /// ([`Atlas::dilated_receiver_of_texel`]), and per texel whether that
+    /// receiver is one of [`Self::hidden_tap_receivers`]; both empty when
+    /// there are none. Shading reads the receivers' values wherever its
+    /// bilinear footprint touches such a texel ([`Self::indirect_irradiance`]).
+    shown_receiver: Vec<u32>,
+    shows_hidden_taps: Vec<bool>,
     /// Per surfel: A_l Y_lm(normal), `bands^2` values.
     surfel_basis: Vec<f32>,
     /// Irradiance at each surfel from emissive surfaces through the links
@@ -200,8 +200,8 @@ impl Pic {
             hidden_tap_receivers: Vec::new(),
             hidden_tap_taps: Vec::new(),
             hidden_tap_index: Vec::new(),
-            tap_correction: Vec::new(),
-            tap_dilation: Vec::new(),
+            shown_receiver: Vec::new(),
+            shows_hidden_taps: Vec::new(),
             surfel_basis,
             surfel_area_light: vec![Vec3::ZERO; surfels.len()],
             surfel_direct: vec![Rgb::ZERO; surfels.len()],
@@ -431,42 +431,30 @@ impl Pic {
             }
         }
         if !self.hidden_tap_receivers.is_empty() {
+            self.shown_receiver = self.context.atlas.dilated_receiver_of_texel();
+            self.shows_hidden_taps = self
+                .shown_receiver
+                .iter()
+                .map(|&receiver| {
+                    index_of
+                        .get(receiver as usize)
+                        .is_some_and(|&hidden| hidden != NO_CACHE)
+                })
+                .collect();
             self.hidden_tap_index = index_of;
-            let atlas = &self.context.atlas;
-            self.tap_dilation = atlas.dilation_from(self.hidden_tap_receivers.iter().copied());
-            self.tap_correction = vec![Rgb::ZERO; (atlas.width * atlas.height) as usize];
         }
     }
 
-    /// Refreshes [`Self::tap_correction`] from this frame's caches.
-    fn correct_hidden_taps(&mut self) {
-        if self.hidden_tap_receivers.is_empty() {
-            return;
-        }
-        let changes: Vec<Rgb> = self
-            .hidden_tap_receivers
-            .par_iter()
-            .map(|&receiver| {
-                let receivers = &self.context.atlas.receivers;
-                let index = receiver as usize;
-                self.receiver_values[index]
-                    - self.surface_irradiance(
-                        receivers.triangles[index],
-                        receivers.barycentrics[index],
-                        receivers.normals[index],
-                    )
-            })
-            .collect();
-        let atlas = &self.context.atlas;
-        let mut map = std::mem::take(&mut self.tap_correction);
-        for (&receiver, change) in self.hidden_tap_receivers.iter().zip(changes) {
-            let [x, y] = atlas.receivers.texels[receiver as usize];
-            map[(y * atlas.width + x) as usize] = change;
-        }
-        for &(target, source) in &self.tap_dilation {
-            map[target as usize] = map[source as usize];
-        }
-        self.tap_correction = map;
+    /// Whether the scene atlas's bilinear footprint at a point touches a
+    /// texel whose receiver drops hidden caches.
+    fn footprint_has_hidden_taps(&self, triangle: u32, barycentric: Vec2) -> bool {
+        !self.shows_hidden_taps.is_empty()
+            && self
+                .context
+                .atlas
+                .bilinear_texels(triangle, barycentric)
+                .into_iter()
+                .any(|(texel, weight)| weight > 0.0 && self.shows_hidden_taps[texel])
     }
 
     /// Irradiance (YCoCg) of `taps` for a surface whose A_l Y_lm(normal)
@@ -1178,9 +1166,6 @@ impl Technique for Pic {
         self.look_up_receivers();
         receiver_time += start.elapsed();
         let start = Instant::now();
-        self.correct_hidden_taps();
-        let hidden_tap_time = start.elapsed();
-        let start = Instant::now();
         self.gather_near_field();
         gather_time += start.elapsed();
         let start = Instant::now();
@@ -1191,11 +1176,6 @@ impl Technique for Pic {
         self.timings.stages.push(("surfel lighting", surfel_time));
         self.timings.stages.push(("pull", pull_time));
         self.timings.stages.push(("cache lighting", cache_time));
-        if !self.hidden_tap_receivers.is_empty() {
-            self.timings
-                .stages
-                .push(("hidden cache taps", hidden_tap_time));
-        }
         self.timings.stages.push(("receiver values", receiver_time));
         if !self.final_gather.is_empty() {
             self.final_gather
@@ -1227,17 +1207,31 @@ impl Technique for Pic {
         self.last_frame.forget();
     }
 
+    /// The caches' bilinear light at the point plus the final gather's
+    /// correction; where the scene atlas's footprint touches a receiver
+    /// that drops hidden caches, the receivers' own values (the lightmap
+    /// an engine reads) instead. A correction map added to the per-point
+    /// lookup there was wrong within the texel: a cache texel straddling
+    /// the corner of two rooms' walls lit the lookup 0.43 beside the
+    /// corner and 0.09 a texel on, and the corner receiver's correction
+    /// (-0.34), blended onto the dim side, shaded a black strip along it.
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
+        if self.footprint_has_hidden_taps(point.triangle, point.barycentric) {
+            return self
+                .context
+                .atlas
+                .sample_receivers(
+                    &self.shown_receiver,
+                    &self.receiver_values,
+                    point.triangle,
+                    point.barycentric,
+                )
+                .max(Rgb::ZERO);
+        }
         let cached = self.surface_irradiance(point.triangle, point.barycentric, point.normal);
-        let mut correction =
+        let correction =
             self.final_gather
                 .correction(&self.context, point.triangle, point.barycentric);
-        if !self.tap_correction.is_empty() {
-            correction +=
-                self.context
-                    .atlas
-                    .sample(&self.tap_correction, point.triangle, point.barycentric);
-        }
         (cached + correction).max(Rgb::ZERO)
     }
 
@@ -1321,13 +1315,13 @@ impl Technique for Pic {
         if !self.hidden_tap_receivers.is_empty() {
             entries.push(MemoryEntry::new(
                 format!(
-                    "receivers with hidden lightmap caches ({}: taps, index, correction map)",
+                    "receivers with hidden lightmap caches ({}: taps, index, texels showing them)",
                     self.hidden_tap_receivers.len()
                 ),
                 self.hidden_tap_receivers.len() * (4 + 32)
                     + self.hidden_tap_index.len() * 4
-                    + self.tap_correction.len() * 12
-                    + self.tap_dilation.len() * 8,
+                    + self.shown_receiver.len() * 4
+                    + self.shows_hidden_taps.len(),
             ));
         }
         if !self.near_light.is_empty() {

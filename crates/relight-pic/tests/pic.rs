@@ -893,3 +893,68 @@ fn caches_see_a_shaded_lamp_through_explicit_samples() {
     let (measured, _) = corner.measure_as_the_study_does(technique.as_ref());
     assert!(measured.image_tiles < 0.08, "{}", measured.image_tiles);
 }
+
+/// Shading between the lightmap's receivers follows their light: no point
+/// the camera sees falls under half the dimmest receiver around it. Where
+/// a receiver drops a cache it cannot see, shading used to add that
+/// receiver's change to the per-point cache lookup; beside the corner of
+/// two walls in generated variant 37 (default family; a wall plane that
+/// runs on through the room's side wall into the lamp-lit room, under
+/// texels of about 0.22 m) the cache texel across the corner lit the
+/// lookup 0.43 at the corner and 0.09 a texel on, the corner's change of
+/// -0.34 was blended onto the dim side, and a strip of wall shaded black.
+/// Half is far under what bilinear blending of lookups can take away
+/// between receivers, and far over the black strip's zero.
+#[test]
+fn shading_between_receivers_follows_their_light() {
+    let case =
+        relight_render::robustness::VariantCase::default_family(37).expect("the variant loads");
+    let context = &case.context;
+    let technique = pic(context, &[("preset", "high")]);
+    let values = technique.receiver_irradiance().expect("PIC has receivers");
+    let shown = context.atlas.dilated_receiver_of_texel();
+    let camera = relight_trace::path::CameraRays::new(&context.scene.camera);
+    let mesh = &context.scene.mesh;
+    let (mut seen, mut dark) = (0usize, Vec::new());
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let ray = camera.ray(x, y, glam::Vec2::splat(0.5));
+            let Some(hit) = relight_render::render::visible_hit(context, &ray) else {
+                continue;
+            };
+            let normal = mesh.geometric_normal(hit.triangle as usize);
+            if normal.dot(ray.direction) >= 0.0 {
+                continue;
+            }
+            let around = context
+                .atlas
+                .bilinear_texels(hit.triangle, hit.barycentric)
+                .into_iter()
+                .filter(|&(texel, weight)| weight > 0.0 && shown[texel] != u32::MAX)
+                .map(|(texel, _)| luminance(values[shown[texel] as usize]))
+                .fold(f32::INFINITY, f32::min);
+            if !around.is_finite() {
+                continue;
+            }
+            seen += 1;
+            let point = SurfacePoint {
+                position: ray.origin + ray.direction * hit.t,
+                normal,
+                triangle: hit.triangle,
+                barycentric: hit.barycentric,
+            };
+            let shaded = luminance(technique.indirect_irradiance(&point));
+            if shaded < 0.5 * around {
+                dark.push(([x, y], shaded, around));
+            }
+        }
+    }
+    let examples = &dark[..dark.len().min(8)];
+    println!(
+        "{} of {seen} points under half the dimmest receiver around them: {examples:?}",
+        dark.len()
+    );
+    let pixels = camera.width as usize * camera.height as usize;
+    assert!(seen > pixels / 2, "{seen} of {pixels}");
+    assert!(dark.is_empty(), "{} points, e.g. {examples:?}", dark.len());
+}

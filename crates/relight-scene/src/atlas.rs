@@ -594,27 +594,6 @@ impl Atlas {
             .count()
     }
 
-    /// The dilation pairs that matter for a lightmap that is zero except
-    /// at `receivers`: those that copy from their texels, directly or
-    /// through a chain, and those that write over such a copy. Applied in
-    /// order (as [`Self::dilate`] applies all of them) they give the full
-    /// dilation's result for a fraction of the work.
-    pub fn dilation_from(&self, receivers: impl IntoIterator<Item = u32>) -> Vec<(u32, u32)> {
-        let mut affected = vec![false; (self.width * self.height) as usize];
-        for receiver in receivers {
-            let [x, y] = self.receivers.texels[receiver as usize];
-            affected[(y * self.width + x) as usize] = true;
-        }
-        let mut pairs = Vec::new();
-        for &(target, source) in &self.dilation {
-            if affected[source as usize] || affected[target as usize] {
-                affected[target as usize] = affected[source as usize];
-                pairs.push((target, source));
-            }
-        }
-        pairs
-    }
-
     /// Texel-space UV of a point on a triangle.
     #[inline]
     pub fn uv_of(&self, triangle: u32, barycentric: Vec2) -> Vec2 {
