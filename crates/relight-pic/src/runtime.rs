@@ -445,16 +445,31 @@ impl Pic {
         }
     }
 
-    /// Whether the scene atlas's bilinear footprint at a point touches a
-    /// texel whose receiver drops hidden caches.
-    fn footprint_has_hidden_taps(&self, triangle: u32, barycentric: Vec2) -> bool {
-        !self.shows_hidden_taps.is_empty()
-            && self
-                .context
-                .atlas
-                .bilinear_texels(triangle, barycentric)
-                .into_iter()
-                .any(|(texel, weight)| weight > 0.0 && self.shows_hidden_taps[texel])
+    /// The bilinear blend of the receivers' values at a point, when the
+    /// scene atlas's footprint there touches a texel whose receiver drops
+    /// hidden caches; `None` elsewhere. One footprint serves the test and
+    /// the blend: this runs per shaded pixel.
+    fn receivers_where_taps_hide(&self, triangle: u32, barycentric: Vec2) -> Option<Rgb> {
+        if self.shows_hidden_taps.is_empty() {
+            return None;
+        }
+        let footprint = self.context.atlas.bilinear_texels(triangle, barycentric);
+        if !footprint
+            .iter()
+            .any(|&(texel, weight)| weight > 0.0 && self.shows_hidden_taps[texel])
+        {
+            return None;
+        }
+        let value = |texel: usize| match self.shown_receiver[texel] {
+            u32::MAX => Rgb::ZERO,
+            receiver => self.receiver_values[receiver as usize],
+        };
+        Some(
+            footprint
+                .iter()
+                .map(|&(texel, weight)| value(texel) * weight)
+                .sum(),
+        )
     }
 
     /// Irradiance (YCoCg) of `taps` for a surface whose A_l Y_lm(normal)
@@ -1216,17 +1231,8 @@ impl Technique for Pic {
     /// corner and 0.09 a texel on, and the corner receiver's correction
     /// (-0.34), blended onto the dim side, shaded a black strip along it.
     fn indirect_irradiance(&self, point: &SurfacePoint) -> Rgb {
-        if self.footprint_has_hidden_taps(point.triangle, point.barycentric) {
-            return self
-                .context
-                .atlas
-                .sample_receivers(
-                    &self.shown_receiver,
-                    &self.receiver_values,
-                    point.triangle,
-                    point.barycentric,
-                )
-                .max(Rgb::ZERO);
+        if let Some(blend) = self.receivers_where_taps_hide(point.triangle, point.barycentric) {
+            return blend.max(Rgb::ZERO);
         }
         let cached = self.surface_irradiance(point.triangle, point.barycentric, point.normal);
         let correction =
